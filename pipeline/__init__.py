@@ -1,0 +1,3 @@
+"""twray: ray scattering in transparent-wood microstructures."""
+
+__version__ = "0.1.0"

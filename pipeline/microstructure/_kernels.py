@@ -1,0 +1,800 @@
+"""Numba kernels of the wood microstructure model (GENERATOR.md).
+
+The phase at a point is a pure function of (constants, seed, position):
+
+    output X ──dipole pull-back──► p1 ──ray band? / ray squeeze──► p ──lattice──► phase
+
+All lengths are in µm.  Nothing here depends on the block being generated,
+only on global coordinates, so any block (chunk) can be generated alone and
+the voxels are identical whatever the chunking.  The Python in ``model.py``
+validates inputs and shapes the arrays around these kernels.
+"""
+
+import math
+
+import numpy as np
+from numba import njit
+
+from . import _rng
+from ._rng import normal, uniform
+
+# Indices into the model-constant vector ``M`` (float64).  Lengths in µm.
+PITCH, SCALE, T0, WALLVAR, JITTER, PUSH, CTRL, FLEN, FLEN_SD, PLATE, ENDS, SHAPE = range(12)
+VESSELS, VPROB, VPAIR, VTRIPLE, VWALL = range(12, 17)
+RAYS, RSPACE, RJIT, RSER, RWIDTH, RHEIGHT, RLEN, RLEN_SD, RGROUP, RGROUP_SD, RSQUEEZE, RRAMP = range(17, 29)
+DIST, LARGE_P, BEND_A, BEND_WL = range(29, 33)
+N_CONSTANTS = 33
+
+WALL = np.uint8(1)
+POLYMER = np.uint8(0)
+
+# Fixed structure of the stationary layouts (in lattice nodes / cell heights).
+VTILE_R = 12  # vessel tile size along R [nodes]
+VTILE_T = 10  # ... along T [nodes]
+VHARD_R = 8  # hard-core box between vessels of different clusters [nodes]
+VHARD_T = 8  # also keeps the lookup cells of two clusters apart
+VRAY_CLEAR = 5  # vessels stay this many nodes away from ray rows
+VESSEL_AXIS_R = 3.2 / 3.0  # outline semi-axis along R relative to the 3-node span
+RAY_PERIOD = 26  # L slot per ray group [cell heights]; one group per slot
+RAY_MIN_GAP = 6  # minimum gap between groups [cell heights]
+GRID_PER_PITCH = 8  # distortion grid nodes per lattice pitch
+TILE = 64  # distortion grid cells per tile side
+
+# Stats counters (a cost model: equal counters mean equal work).
+ST_NODES, ST_VOXELS, ST_DIPOLES, ST_LATTICE, ST_TILES = range(5)
+
+
+# --------------------------------------------------------------------------
+# Lattice nodes
+# --------------------------------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def node_state(seed, M, n, m, L):
+    """Jittered position (R, T) [µm] and wall inset t [µm] of node (n, m) at L.
+
+    Control values every ``M[CTRL]`` µm along L are interpolated with a local
+    Catmull-Rom spline, so a node at any L needs only four control values.
+    """
+    c = M[PITCH]
+    amp = M[JITTER] * c
+    x = L / M[CTRL]
+    k = math.floor(x)
+    f = x - k
+    k = np.int64(k)
+    f2 = f * f
+    f3 = f2 * f
+    # Catmull-Rom weights of the control values k-1, k, k+1, k+2.
+    w0 = 0.5 * (-f + 2.0 * f2 - f3)
+    w1 = 0.5 * (2.0 - 5.0 * f2 + 3.0 * f3)
+    w2 = 0.5 * (f + 4.0 * f2 - 3.0 * f3)
+    w3 = 0.5 * (f3 - f2)
+    r = 0.0
+    t = 0.0
+    w = 0.0
+    for q in range(4):
+        wq = w0 if q == 0 else (w1 if q == 1 else (w2 if q == 2 else w3))
+        r += wq * (2.0 * uniform(seed, _rng.NODE_R, n, m, k + q - 1) - 1.0)
+        t += wq * (2.0 * uniform(seed, _rng.NODE_T, n, m, k + q - 1) - 1.0)
+        w += wq * (2.0 * uniform(seed, _rng.NODE_WALL, n, m, k + q - 1) - 1.0)
+    return n * c + amp * r, m * c + amp * t, M[T0] * (1.0 + M[WALLVAR] * w)
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def is_centre(n, m):
+    """Fibre centres: every second node column, alternate columns shifted by one node."""
+    return m % 2 == 0 and (n - m // 2) % 2 == 0
+
+
+# --------------------------------------------------------------------------
+# Stationary 1-D renewal chains (fibre ends along L, ray cells along R)
+# --------------------------------------------------------------------------
+@njit(inline="always", cache=True, error_model="numpy")
+def _boundary(seed, kind, a, b, q, phase, mean, sd, emax):
+    e = normal(seed, kind, a, b, q) * sd * 0.7071067811865476
+    if e > emax:
+        e = emax
+    elif e < -emax:
+        e = -emax
+    return q * mean + phase + e
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def chain_interval(x, seed, kind, a, b, phase, mean, sd, min_len):
+    """The cell (lo, hi) of a jittered-lattice chain that contains x.
+
+    Boundaries sit at q·mean + phase + e_q with e_q ~ N(0, sd²/2) clipped to
+    ±(mean − min_len)/2, so lengths are ≈ N(mean, sd²), never below min_len,
+    and finding the cell at any x costs O(1) (no walk from an origin).
+    """
+    emax = max(0.0, 0.5 * (mean - min_len))
+    q0 = np.int64(math.floor((x - phase) / mean))
+    b0 = _boundary(seed, kind, a, b, q0, phase, mean, sd, emax)
+    if x < b0:
+        return _boundary(seed, kind, a, b, q0 - 1, phase, mean, sd, emax), b0
+    b1 = _boundary(seed, kind, a, b, q0 + 1, phase, mean, sd, emax)
+    if x < b1:
+        return b0, b1
+    return b1, _boundary(seed, kind, a, b, q0 + 2, phase, mean, sd, emax)
+
+
+# --------------------------------------------------------------------------
+# Ray columns and groups
+# --------------------------------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def ray_row(seed, M, k):
+    """Node row (even T index) of ray column k."""
+    x = k * M[RSPACE] + (2.0 * uniform(seed, _rng.RAY_COLUMN, k, 0, 0) - 1.0) * M[RJIT]
+    return np.int64(2 * round(0.5 * x))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def near_ray(seed, M, m, dist):
+    """True when node row m is within ``dist`` rows of a ray column."""
+    if M[RAYS] == 0.0:
+        return False
+    kc = np.int64(round(m / M[RSPACE]))
+    for k in range(kc - 1, kc + 2):
+        if abs(m - ray_row(seed, M, k)) < dist:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ray_group(seed, M, k, L):
+    """Ray group of column k around L: (L0, L1, slot); L0 = nan when none.
+
+    Each slot of RAY_PERIOD cell heights holds one group of N(mean, sd)
+    cells at a random offset, leaving at least RAY_MIN_GAP cells of gap.
+    """
+    h = M[RHEIGHT]
+    period = RAY_PERIOD * h
+    phase = uniform(seed, _rng.RAY_GROUP, k, 1, 0) * period
+    g = np.int64(math.floor((L - phase) / period))
+    ncell = round(M[RGROUP] + M[RGROUP_SD] * normal(seed, _rng.RAY_GROUP, k, 3, g))
+    lo = max(1.0, min(5.0, round(M[RGROUP])))
+    ncell = min(max(ncell, lo), RAY_PERIOD - RAY_MIN_GAP)
+    off = math.floor(uniform(seed, _rng.RAY_GROUP, k, 4, g) * (RAY_PERIOD - RAY_MIN_GAP - ncell + 1))
+    L0 = g * period + phase + off * h
+    L1 = L0 + ncell * h
+    if L < L0 or L > L1:
+        return math.nan, math.nan, g
+    return L0, L1, g
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def ray_band_width(M):
+    return M[RSER] * (M[RWIDTH] + 2.0 * M[T0])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ray_cell_phase(seed, M, pR, pT, L, t_r, b, L0, L1, k, g):
+    """Phase inside a ray band of half-width b centred at T = t_r."""
+    ns = np.int64(M[RSER])
+    sw = 2.0 * b / ns
+    s = np.int64(math.floor((pT - (t_r - b)) / sw))
+    s = min(max(s, 0), ns - 1)
+    Tc = t_r - b + (s + 0.5) * sw
+    h = M[RHEIGHT]
+    off = 0.5 * h * (s % 2)  # biseriate: the second column is offset by half a cell
+    ell = np.int64(math.floor((L - L0 - off) / h))
+    if ell < 0 or L0 + off + (ell + 1) * h > L1 + 1e-9:
+        return WALL
+    aT = 0.5 * sw - M[T0]
+    aL = 0.5 * h - M[T0]
+    if aT <= 0.0 or aL <= 0.0:
+        return WALL
+    Lc = L0 + off + (ell + 0.5) * h
+    dT = (pT - Tc) / aT
+    dL = (L - Lc) / aL
+    if dT * dT + dL * dL >= 1.0:
+        return WALL
+    # Radial cells along R; successive layers staggered by half a cell length.
+    ida = k * 8 + s
+    mean = M[RLEN]
+    phase = uniform(seed, _rng.RAY_CELL_PHASE, ida, 0, 0) * mean + 0.5 * mean * (ell % 2)
+    lo, hi = chain_interval(pR, seed, _rng.RAY_CELL_END, ida, g * 64 + ell, phase, mean,
+                            M[RLEN_SD], 0.4 * mean)
+    end_wall = 0.5 * M[SCALE]
+    if pR - lo < end_wall or hi - pR < end_wall:
+        return WALL
+    return POLYMER
+
+
+# --------------------------------------------------------------------------
+# Vessels: a stationary, hashed, Matérn-II-thinned cluster process
+# --------------------------------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def vessel_proposal(seed, M, a, b, mem_n, mem_m):
+    """Cluster proposed by vessel tile (a, b): number of members (0 = none)."""
+    if uniform(seed, _rng.VESSEL_TILE, a, b, 0) >= M[VPROB]:
+        return 0
+    n = a * VTILE_R + np.int64(math.floor(uniform(seed, _rng.VESSEL_TILE, a, b, 1) * VTILE_R))
+    m = b * VTILE_T + np.int64(math.floor(uniform(seed, _rng.VESSEL_TILE, a, b, 2) * VTILE_T))
+    m = 2 * (m // 2)
+    if (n - m // 2) % 2 != 0:
+        n += 1
+    u = uniform(seed, _rng.VESSEL_TILE, a, b, 3)
+    size = 1
+    if u < M[VTRIPLE]:
+        size = 3
+    elif u < M[VTRIPLE] + M[VPAIR]:
+        size = 2
+    mem_n[0] = n
+    mem_m[0] = m
+    for i in range(1, size):
+        r = uniform(seed, _rng.VESSEL_MEMBER, a, b, i)
+        dn, dm = 6, 0
+        if r >= 0.5:
+            q = np.int64(math.floor((r - 0.5) * 8.0))  # 0..3
+            dn = 5 if q < 2 else 7
+            dm = 2 if q % 2 == 0 else -2
+        mem_n[i] = mem_n[i - 1] + dn
+        mem_m[i] = mem_m[i - 1] + dm
+    for i in range(size):
+        if near_ray(seed, M, mem_m[i], VRAY_CLEAR):
+            return 0
+    return size
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _vessel_kept(seed, M, a, b, size, mem_n, mem_m):
+    pri = uniform(seed, _rng.VESSEL_TILE, a, b, 9)
+    qn = np.empty(3, np.int64)
+    qm = np.empty(3, np.int64)
+    for a2 in range(a - 2, a + 3):
+        for b2 in range(b - 2, b + 3):
+            if a2 == a and b2 == b:
+                continue
+            qs = vessel_proposal(seed, M, a2, b2, qn, qm)
+            if qs == 0:
+                continue
+            conflict = False
+            for i in range(size):
+                for j in range(qs):
+                    if abs(mem_n[i] - qn[j]) < VHARD_R and abs(mem_m[i] - qm[j]) < VHARD_T:
+                        conflict = True
+            if not conflict:
+                continue
+            pri2 = uniform(seed, _rng.VESSEL_TILE, a2, b2, 9)
+            if pri2 > pri or (pri2 == pri and (a2 > a or (a2 == a and b2 > b))):
+                return False
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def vessels_in_region(seed, M, n_lo, n_hi, m_lo, m_hi, out):
+    """Vessel members whose 7-fibre footprint may touch nodes [n_lo, n_hi] × [m_lo, m_hi].
+
+    ``out`` rows: (n, m, cluster id, index in cluster, cluster size).  Members
+    of one cluster are consecutive.  Returns the number of rows written.
+    """
+    if M[VESSELS] == 0.0:
+        return 0
+    mem_n = np.empty(3, np.int64)
+    mem_m = np.empty(3, np.int64)
+    count = 0
+    cluster = 0
+    a_lo = (n_lo - 24) // VTILE_R - 1
+    a_hi = (n_hi + 4) // VTILE_R + 1
+    b_lo = (m_lo - 12) // VTILE_T - 1
+    b_hi = (m_hi + 12) // VTILE_T + 1
+    for a in range(a_lo, a_hi + 1):
+        for b in range(b_lo, b_hi + 1):
+            size = vessel_proposal(seed, M, a, b, mem_n, mem_m)
+            if size == 0:
+                continue
+            touches = False
+            for i in range(size):
+                if (n_lo - 5 <= mem_n[i] <= n_hi + 5) and (m_lo - 5 <= mem_m[i] <= m_hi + 5):
+                    touches = True
+            if not touches or not _vessel_kept(seed, M, a, b, size, mem_n, mem_m):
+                continue
+            if count + size > out.shape[0]:
+                raise ValueError("too many vessels in region; enlarge the buffer")
+            for i in range(size):
+                out[count, 0] = mem_n[i]
+                out[count, 1] = mem_m[i]
+                out[count, 2] = cluster
+                out[count, 3] = i
+                out[count, 4] = size
+                count += 1
+            cluster += 1
+    return count
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _member_of(vessels, nv, n, m):
+    for v in range(nv):
+        if abs(n - vessels[v, 0]) <= 2 and abs(m - vessels[v, 1]) <= 2:
+            return True
+    return False
+
+
+# --------------------------------------------------------------------------
+# Distortion: dipoles and the global bend, tabulated per tile on a grid
+# --------------------------------------------------------------------------
+@njit(inline="always", cache=True, error_model="numpy")
+def _sig(x):
+    return 1.0 / (1.0 + math.exp(-x))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _add_dipole(out, gR, gT, R0, T0_, k1, k2, k3, k4, sign, rv, acut, bcut):
+    """Add one dipole (GENERATOR.md §5) to the tile grid ``out``.
+
+    d(a, b) = [σ(k1 a) − σ(k2 a)]·(k4/k2)·exp(−b²/(2 (k3/k2)²)), in reference
+    voxels; u uses (a, b) = (R, T), v uses (T, R).  Separable, so the grid
+    costs O(n) exponentials per dipole.
+    """
+    n = gR.shape[0]
+    w = k3 / k2
+    amp = sign * k4 / k2 * rv
+    AR = np.zeros(n)
+    BR = np.zeros(n)
+    AT = np.zeros(n)
+    BT = np.zeros(n)
+    anyR = False
+    anyT = False
+    for i in range(n):
+        a = (gR[i] - R0) / rv
+        if abs(a) <= acut:
+            AR[i] = (_sig(k1 * a) - _sig(k2 * a)) * amp
+            anyR = True
+        if abs(a) <= bcut:
+            BR[i] = math.exp(-a * a / (2.0 * w * w))
+        b = (gT[i] - T0_) / rv
+        if abs(b) <= acut:
+            AT[i] = (_sig(k1 * b) - _sig(k2 * b)) * amp
+            anyT = True
+        if abs(b) <= bcut:
+            BT[i] = math.exp(-b * b / (2.0 * w * w))
+    if not (anyR or anyT):
+        return 0
+    for i in range(n):
+        for j in range(n):
+            out[i, j, 0] += AR[i] * BT[j]
+            out[i, j, 1] += AT[j] * BR[i]
+    return 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def distortion_tile(seed, M, a, b, out, stats):
+    """Displacement d = (dR, dT) [µm] on the (TILE+1)² grid of tile (a, b).
+
+    Grid node (i, j) of the tile sits at ((a·TILE + i)·G, (b·TILE + j)·G)
+    with G = pitch / GRID_PER_PITCH.  Each dipole's contribution to a node
+    depends only on the pair, and dipoles are added in a fixed global order,
+    so nodes shared by two tiles get identical values.
+    """
+    c = M[PITCH]
+    G = c / GRID_PER_PITCH
+    rv = 0.5 * M[SCALE]  # a reference voxel [µm]
+    n = TILE + 1
+    gR = np.empty(n)
+    gT = np.empty(n)
+    for i in range(n):
+        gR[i] = (a * TILE + i) * G
+        gT[i] = (b * TILE + i) * G
+    out[:, :, :] = 0.0
+    amp = M[DIST]
+    # Fibre and vessel dipoles: support ±250 reference voxels.
+    halo = 250.0 * rv
+    n_lo = np.int64(math.floor((gR[0] - halo) / c)) - 1
+    n_hi = np.int64(math.ceil((gR[n - 1] + halo) / c)) + 1
+    m_lo = np.int64(math.floor((gT[0] - halo) / c)) - 1
+    m_hi = np.int64(math.ceil((gT[n - 1] + halo) / c)) + 1
+    vessels = np.empty((4096, 5), np.int64)
+    nv = vessels_in_region(seed, M, n_lo, n_hi, m_lo, m_hi, vessels)
+    terms = 0
+    if amp > 0.0:
+        for m in range(m_lo, m_hi + 1):
+            for nn in range(n_lo, n_hi + 1):
+                if not is_centre(nn, m) or _member_of(vessels, nv, nn, m):
+                    continue
+                k3 = 2.0 + uniform(seed, _rng.DIPOLE, nn, m, 0)
+                k4 = (1.0 + uniform(seed, _rng.DIPOLE, nn, m, 1)) * amp
+                if near_ray(seed, M, m, 5):
+                    k4 *= 0.3
+                sign = 1.0 if uniform(seed, _rng.DIPOLE_SIGN, nn, m, 0) < 0.5 else -1.0
+                terms += _add_dipole(out, gR, gT, nn * c, m * c, 0.08, 0.06, k3, k4, sign,
+                                     rv, 250.0, 4.0 * k3 / 0.06)
+        for v in range(nv):
+            terms += _add_dipole(out, gR, gT, vessels[v, 0] * c, vessels[v, 1] * c,
+                                 0.06, 0.055, 2.0, 15.0 * amp, 1.0, rv, 250.0, 4.0 * 2.0 / 0.055)
+        # Rare large-scale dipoles: support ±1200 reference voxels.
+        if M[LARGE_P] > 0.0:
+            halo = 1200.0 * rv
+            for m in range(np.int64(math.floor((gT[0] - halo) / c)),
+                           np.int64(math.ceil((gT[n - 1] + halo) / c)) + 1):
+                for nn in range(np.int64(math.floor((gR[0] - halo) / c)),
+                                np.int64(math.ceil((gR[n - 1] + halo) / c)) + 1):
+                    if not is_centre(nn, m) or uniform(seed, _rng.LARGE_DIPOLE, nn, m, 0) >= M[LARGE_P]:
+                        continue
+                    k3 = 1.5 * (1.0 + uniform(seed, _rng.LARGE_DIPOLE, nn, m, 1))
+                    k4 = 0.5 * (1.0 + uniform(seed, _rng.LARGE_DIPOLE, nn, m, 2)) * amp
+                    sign = 1.0 if uniform(seed, _rng.LARGE_DIPOLE, nn, m, 3) < 0.5 else -1.0
+                    terms += _add_dipole(out, gR, gT, nn * c, m * c, 0.01, 0.008, k3, k4, sign,
+                                         rv, 1200.0, 3.0 * k3 / 0.008)
+    # Stationary global bend of the radial files (random phases).
+    A = M[BEND_A]
+    if A > 0.0:
+        lam = M[BEND_WL]
+        ph1 = 2.0 * math.pi * uniform(seed, _rng.GLOBAL_BEND, 0, 0, 0)
+        ph2 = 2.0 * math.pi * uniform(seed, _rng.GLOBAL_BEND, 0, 0, 1)
+        for i in range(n):
+            for j in range(n):
+                out[i, j, 1] += A * math.sin(2.0 * math.pi * gR[i] / lam + ph1)
+                out[i, j, 0] += 0.5 * A * math.sin(2.0 * math.pi * gT[j] / (1.618 * lam) + ph2)
+    stats[ST_DIPOLES] += terms
+    stats[ST_TILES] += 1
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def pull_back(patch, gi0, gj0, G, R, T):
+    """p1 = X − d(X), d bilinear on the global distortion grid (indices from global coords)."""
+    x = R / G
+    y = T / G
+    ix = math.floor(x)
+    iy = math.floor(y)
+    fx = x - ix
+    fy = y - iy
+    i = np.int64(ix) - gi0
+    j = np.int64(iy) - gj0
+    dR = ((1.0 - fx) * ((1.0 - fy) * patch[i, j, 0] + fy * patch[i, j + 1, 0])
+          + fx * ((1.0 - fy) * patch[i + 1, j, 0] + fy * patch[i + 1, j + 1, 0]))
+    dT = ((1.0 - fx) * ((1.0 - fy) * patch[i, j, 1] + fy * patch[i, j + 1, 1])
+          + fx * ((1.0 - fy) * patch[i + 1, j, 1] + fy * patch[i + 1, j + 1, 1]))
+    return R - dR, T - dT
+
+
+# --------------------------------------------------------------------------
+# One slice (fixed L in ply coordinates): tables, then the per-point phase
+# --------------------------------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VIDX, rays, stats):
+    """Fill the node, fibre, vessel and ray tables of one slice at L.
+
+    NR, NT, Nt : node positions and wall insets on the window starting at (n_lo, m_lo).
+    FE : per centre (cR, cT, 1/aR², 1/aT², bias) of the inset lumen ellipse; the
+        bias is 0 for an open lumen and huge for a closed one.
+    FF : per centre flag, 0 open lumen, 1 closed (end plate or no lumen), 2 vessel member.
+    VG : per vessel member (cR, cT, aR, aT) of its outline.
+    VIDX : per lattice cell of the window, the first member of the vessel cluster
+        whose outline may cover it, or -1.
+    rays : rows (t_r, b, L0, L1, k, slot, taper) of ray groups active at L.
+    Returns the number of active ray rows.
+    """
+    c = M[PITCH]
+    nn, nm = NR.shape
+    for i in range(nn):
+        for j in range(nm):
+            r, t, w = node_state(seed, M, n_lo + i, m_lo + j, L)
+            NR[i, j] = r
+            NT[i, j] = t
+            Nt[i, j] = w
+    stats[ST_NODES] += nn * nm
+    push = M[PUSH] * M[SCALE]
+    polygon = M[SHAPE] == 1.0
+    plate = 0.5 * M[PLATE]
+    for i in range(1, nn - 1):
+        for j in range(1, nm - 1):
+            n = n_lo + i
+            m = m_lo + j
+            if not is_centre(n, m):
+                continue
+            flag = 0
+            if _member_of(vessels, nv, n, m):
+                flag = 2
+            elif M[ENDS] != 0.0:
+                ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
+                lo, hi = chain_interval(L, seed, _rng.FIBRE_END, n, m, ph, M[FLEN], M[FLEN_SD],
+                                        min(50.0, 0.5 * M[FLEN]))
+                stats[ST_LATTICE] += 1
+                if L - lo < plate or hi - L < plate:
+                    flag = 1
+            if polygon:
+                FE[i, j, 0] = NR[i, j]
+                FE[i, j, 1] = NT[i, j]
+            else:
+                aR = 0.5 * (NR[i + 1, j] - NR[i - 1, j]) - Nt[i, j]
+                aT = 0.5 * (NT[i, j + 1] - NT[i, j - 1]) + push - Nt[i, j]
+                if aR <= 0.0 or aT <= 0.0:
+                    if flag == 0:
+                        flag = 1
+                    aR = 1.0
+                    aT = 1.0
+                FE[i, j, 0] = 0.5 * (NR[i + 1, j] + NR[i - 1, j])
+                FE[i, j, 1] = 0.5 * (NT[i, j + 1] + NT[i, j - 1])
+                FE[i, j, 2] = 1.0 / (aR * aR)
+                FE[i, j, 3] = 1.0 / (aT * aT)
+            FE[i, j, 4] = 0.0 if flag == 0 else 1e300
+            FF[i, j] = flag
+    for v in range(nv):
+        n = vessels[v, 0]
+        m = vessels[v, 1]
+        rl, _, _ = node_state(seed, M, n - 3, m, L)
+        rr, _, _ = node_state(seed, M, n + 3, m, L)
+        _, td, _ = node_state(seed, M, n, m - 3, L)
+        _, tu, _ = node_state(seed, M, n, m + 3, L)
+        VG[v, 0] = 0.5 * (rl + rr)
+        VG[v, 1] = 0.5 * (td + tu)
+        VG[v, 2] = 0.5 * (rr - rl) * VESSEL_AXIS_R
+        VG[v, 3] = 0.5 * (tu - td)
+    VIDX[:, :] = -1
+    for v in range(nv):
+        first = v - vessels[v, 3]
+        i0 = max(np.int64(math.floor((VG[v, 0] - VG[v, 2]) / c)) - n_lo, 0)
+        i1 = min(np.int64(math.floor((VG[v, 0] + VG[v, 2]) / c)) - n_lo, nn - 1)
+        j0 = max(np.int64(math.floor((VG[v, 1] - VG[v, 3]) / c)) - m_lo, 0)
+        j1 = min(np.int64(math.floor((VG[v, 1] + VG[v, 3]) / c)) - m_lo, nm - 1)
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                VIDX[i, j] = first
+    stats[ST_NODES] += 4 * nv
+    nr = 0
+    if M[RAYS] != 0.0:
+        W = ray_band_width(M)
+        k_lo = np.int64(math.floor(m_lo / M[RSPACE])) - 1
+        k_hi = np.int64(math.ceil((m_lo + nm) / M[RSPACE])) + 1
+        for k in range(k_lo, k_hi + 1):
+            row = ray_row(seed, M, k)
+            if row < m_lo - 8 or row > m_lo + nm + 8:
+                continue
+            L0, L1, g = ray_group(seed, M, k, L)
+            if math.isnan(L0):
+                continue
+            x = min(L - L0, L1 - L) / M[RRAMP]
+            x = min(max(x, 0.0), 1.0)
+            taper = x * x * (3.0 - 2.0 * x)
+            if taper <= 0.0:
+                continue
+            rays[nr, 0] = row * c
+            rays[nr, 1] = 0.5 * W * taper
+            rays[nr, 2] = L0
+            rays[nr, 3] = L1
+            rays[nr, 4] = k
+            rays[nr, 5] = g
+            rays[nr, 6] = taper
+            nr += 1
+    return nr
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _vessel_phase(pR, pT, VG, vessels, nv, first, wall):
+    """-1 outside the vessel cluster starting at member ``first``, else the phase there."""
+    inside = False
+    for v in range(first, first + vessels[first, 4]):
+        dR = (pR - VG[v, 0]) / VG[v, 2]
+        dT = (pT - VG[v, 1]) / VG[v, 3]
+        if dR * dR + dT * dT >= 1.0:
+            continue
+        inside = True
+        aR = VG[v, 2] - wall
+        aT = VG[v, 3] - wall
+        if aR <= 0.0 or aT <= 0.0:
+            continue
+        dR = (pR - VG[v, 0]) / aR
+        dT = (pT - VG[v, 1]) / aT
+        if dR * dR + dT * dT >= 1.0:
+            continue
+        # Cluster neighbours share a flat wall on the bisector of their centres.
+        lumen = True
+        for u in (v - 1, v + 1):
+            if u < 0 or u >= nv or vessels[u, 2] != vessels[v, 2]:
+                continue
+            ex = VG[u, 0] - VG[v, 0]
+            ey = VG[u, 1] - VG[v, 1]
+            norm = math.sqrt(ex * ex + ey * ey)
+            mx = 0.5 * (VG[u, 0] + VG[v, 0])
+            my = 0.5 * (VG[u, 1] + VG[v, 1])
+            if ((pR - mx) * ex + (pT - my) * ey) / norm > -0.5 * wall:
+                lumen = False
+        if lumen:
+            return 0
+    return 1 if inside else -1
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def point_phase(seed, M, K, pR, pT, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr):
+    """Phase (1 wall, 0 polymer) at pre-image (pR, pT) on the slice at L.
+
+    K holds per-call scalars: (pitch, 1/pitch, unused, ray half-width,
+    squeeze support, vessel wall, polygon flag).
+    """
+    c = K[0]
+    if nr > 0:
+        for r in range(nr):
+            d = pT - rays[r, 0]
+            b = rays[r, 1]
+            if abs(d) < b:
+                return ray_cell_phase(seed, M, pR, pT, L, rays[r, 0], b, rays[r, 2],
+                                      rays[r, 3], np.int64(rays[r, 4]), np.int64(rays[r, 5]))
+        lam = K[4]
+        for r in range(nr):
+            d = pT - rays[r, 0]
+            x = abs(d) - rays[r, 1]
+            if x < lam:
+                # Pull-back of the squeeze: the band edge maps to the removed row's edge.
+                q = 1.0 - x / lam
+                shift = rays[r, 6] * (c - K[3]) * q * q * q
+                pT = pT + shift if d > 0 else pT - shift
+    u = pR * K[1]
+    w = pT * K[1]
+    if nv > 0:
+        first = VIDX[np.int64(math.floor(u)) - n_lo, np.int64(math.floor(w)) - m_lo]
+        if first >= 0:
+            ph = _vessel_phase(pR, pT, VG, vessels, nv, first, K[5])
+            if ph >= 0:
+                return np.uint8(ph)
+    if K[6] != 0.0:
+        return _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt)
+    # Lumens of row m = 2j reach |w - m| < margin < 2 nodes, so only rows
+    # 2·j0 and 2·j0 + 2 (j0 = floor(w/2)) and, in each, the two centres
+    # bracketing u can contain the point.  Branch-free: closed lumens carry an
+    # infinite bias in FE[..., 4].
+    j0 = np.int64(math.floor(w * 0.5))
+    n_fl = np.int64(math.floor(u))
+    qmin = 1e300
+    for dj in range(2):
+        j = j0 + dj
+        mi = 2 * j - m_lo
+        for di in range(2):
+            ii = n_fl - ((n_fl - j) & 1) - n_lo + 2 * di
+            dR = pR - FE[ii, mi, 0]
+            dT = pT - FE[ii, mi, 1]
+            q = dR * dR * FE[ii, mi, 2] + dT * dT * FE[ii, mi, 3] + FE[ii, mi, 4]
+            qmin = min(qmin, q)
+    if qmin < 1.0:
+        return POLYMER
+    return WALL
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt):
+    """Thin uniform walls on the Voronoi faces of the jittered centres (balsa)."""
+    jc = np.int64(round(w / 2.0))
+    cand_i = np.empty(12, np.int64)
+    cand_j = np.empty(12, np.int64)
+    nc = 0
+    best = -1
+    bd = 1e300
+    for j in range(jc - 1, jc + 2):
+        m = 2 * j
+        par = j % 2
+        n0 = 2 * np.int64(round((u - par) / 2.0)) + par
+        for n in (n0 - 2, n0, n0 + 2):
+            ii = n - n_lo
+            jj = m - m_lo
+            dR = pR - FE[ii, jj, 0]
+            dT = pT - FE[ii, jj, 1]
+            d2 = dR * dR + dT * dT
+            cand_i[nc] = ii
+            cand_j[nc] = jj
+            if d2 < bd:
+                bd = d2
+                best = nc
+            nc += 1
+    bi = cand_i[best]
+    bj = cand_j[best]
+    if FF[bi, bj] != 0:
+        return WALL
+    for q in range(nc):
+        if q == best:
+            continue
+        ii = cand_i[q]
+        jj = cand_j[q]
+        ex = FE[ii, jj, 0] - FE[bi, bj, 0]
+        ey = FE[ii, jj, 1] - FE[bi, bj, 1]
+        dR = pR - FE[ii, jj, 0]
+        dT = pT - FE[ii, jj, 1]
+        dist = (dR * dR + dT * dT - bd) / (2.0 * math.sqrt(ex * ex + ey * ey))
+        if dist < 0.5 * (Nt[bi, bj] + Nt[ii, jj]):
+            return WALL
+    return POLYMER
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0, gj0, G,
+                 seed, M, K, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr):
+    # The voxel loop is its own small function: LLVM optimises it far better
+    # than when it sits inside the large fill_block.
+    for s in range(start, stop):
+        idx = order[s]
+        i = idx // nL
+        k = idx % nL
+        for j in range(j_lo, j_hi):
+            if rotated:
+                pR, pT = pull_back(patch, gi0, gj0, G, Rp[i, k], Tp[j])
+            else:
+                pR = P1[i, j, 0]
+                pT = P1[i, j, 1]
+            out[k, i, j] = point_phase(seed, M, K, pR, pT, L, n_lo, m_lo, FE, FF, Nt,
+                                       vessels, nv, VG, VIDX, rays, nr)
+
+
+# --------------------------------------------------------------------------
+# A block of voxels for one ply
+# --------------------------------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0, gj0, dmax,
+               vessels, nv, stats):
+    """Fill ``out[L, R, T]`` for T indices [j_lo, j_hi) of the block from one ply.
+
+    ply : (cos θ, sin θ, ΔR, ΔT, ΔL), the rotation of the ply in the L-R plane and
+    its offset.  Ply coordinates: R' = cos·R + sin·L + ΔR, T' = T + ΔT,
+    L' = −sin·R + cos·L + ΔL.  An unrotated ply is evaluated slice by slice at the
+    exact L; a rotated one on the global L' lattice of spacing voxel/2.
+    """
+    nL, nR, nT = out.shape
+    cs, sn, oR, oT, oL = ply[0], ply[1], ply[2], ply[3], ply[4]
+    c = M[PITCH]
+    G = c / GRID_PER_PITCH
+    rotated = sn != 0.0
+    q = 0.5 * voxel
+    # Ply coordinates of each (R, L) pair, and its slice key.
+    Rp = np.empty((nR, nL))
+    Lp = np.empty((nR, nL))
+    key = np.empty(nR * nL, np.int64)
+    for i in range(nR):
+        R = origin[0] + (gstart[0] + i + 0.5) * voxel
+        for k in range(nL):
+            L = origin[2] + (gstart[2] + k + 0.5) * voxel
+            Rp[i, k] = cs * R + sn * L + oR
+            Lp[i, k] = -sn * R + cs * L + oL
+            if rotated:
+                key[i * nL + k] = np.int64(round(Lp[i, k] / q))
+            else:
+                key[i * nL + k] = k
+    Tp = np.empty(nT)
+    for j in range(nT):
+        Tp[j] = origin[1] + (gstart[1] + j + 0.5) * voxel + oT
+    order = np.argsort(key, kind="mergesort")
+    # Unrotated plies: the pre-image of each (R, T) column is the same on every slice.
+    P1 = np.empty((nR if not rotated else 0, nT, 2))
+    if not rotated:
+        for i in range(nR):
+            for j in range(j_lo, j_hi):
+                a, b = pull_back(patch, gi0, gj0, G, Rp[i, 0], Tp[j])
+                P1[i, j, 0] = a
+                P1[i, j, 1] = b
+    W2 = 0.5 * ray_band_width(M) if M[RAYS] != 0.0 else 0.0
+    t_margin = dmax + max(c, W2) + 1.0
+    K = np.array([c, 1.0 / c, 0.0, W2,
+                  M[RSQUEEZE] * M[SCALE], M[VWALL], M[SHAPE]])
+    m_lo = np.int64(math.floor((Tp[j_lo] - t_margin) / c)) - 5
+    m_hi = np.int64(math.ceil((Tp[j_hi - 1] + t_margin) / c)) + 5
+    nm = m_hi - m_lo + 1
+    VG = np.empty((max(nv, 1), 4))
+    rays = np.empty((64, 7))
+    start = 0
+    total = nR * nL
+    while start < total:
+        kb = key[order[start]]
+        stop = start
+        rmin = 1e300
+        rmax = -1e300
+        while stop < total and key[order[stop]] == kb:
+            idx = order[stop]
+            r = Rp[idx // nL, idx % nL]
+            rmin = min(rmin, r)
+            rmax = max(rmax, r)
+            stop += 1
+        if rotated:
+            L = kb * q
+        else:
+            L = Lp[0, kb]
+        n_lo = np.int64(math.floor((rmin - dmax - 1.0) / c)) - 4
+        n_hi = np.int64(math.ceil((rmax + dmax + 1.0) / c)) + 4
+        nn = n_hi - n_lo + 1
+        NR = np.empty((nn, nm))
+        NT = np.empty((nn, nm))
+        Nt = np.empty((nn, nm))
+        FE = np.zeros((nn, nm, 5))
+        FE[:, :, 4] = 1e300
+        FF = np.ones((nn, nm), np.uint8)
+        VIDX = np.empty((nn, nm), np.int64)
+        nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VIDX, rays,
+                         stats)
+        _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0,
+                     gj0, G, seed, M, K, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr)
+        stats[ST_VOXELS] += (stop - start) * (j_hi - j_lo)
+        start = stop

@@ -1,0 +1,176 @@
+"""The wood microstructure as a pure function of (parameters, seed, position).
+
+:func:`generate_block` evaluates any box of voxels of the infinite,
+stationary wood field.  It is what every chunk of a volume calls; the bytes
+of a voxel depend only on its global position, never on the box around it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import threading
+
+import numpy as np
+
+from ..params import Grid, WoodParams
+from . import _kernels as K
+from . import _rng
+
+N_STATS = 5
+STAT_NAMES = ("node_states", "voxels", "dipole_terms", "chain_lookups", "distortion_tiles")
+
+
+def model_constants(p: WoodParams) -> np.ndarray:
+    """The float64 constant vector the kernels read (lengths in µm)."""
+    M = np.zeros(K.N_CONSTANTS)
+    M[K.PITCH] = p.node_pitch_um
+    M[K.SCALE] = p.scale
+    M[K.T0] = p.wall_thickness_um / 2.0
+    M[K.WALLVAR] = p.wall_variation
+    M[K.JITTER] = p.node_jitter
+    M[K.PUSH] = p.lumen_elongation_um
+    M[K.CTRL] = p.control_spacing_um
+    M[K.FLEN] = p.fibre_length_um
+    M[K.FLEN_SD] = p.fibre_length_sd_um
+    M[K.PLATE] = p.wall_thickness_um
+    M[K.ENDS] = float(p.end_plates)
+    M[K.SHAPE] = 1.0 if p.cell_shape == "polygon" else 0.0
+    M[K.VESSELS] = float(p.vessels)
+    M[K.VPROB] = p.vessel_cluster_probability
+    M[K.VPAIR] = p.vessel_pair_fraction
+    M[K.VTRIPLE] = p.vessel_triple_fraction
+    M[K.VWALL] = p.vessel_wall()
+    M[K.RAYS] = float(p.ray_cells)
+    M[K.RSPACE] = p.ray_spacing_nodes
+    M[K.RJIT] = p.ray_jitter_nodes
+    M[K.RSER] = p.ray_seriate
+    M[K.RWIDTH] = p.ray_cell_width_um
+    M[K.RHEIGHT] = p.ray_cell_height_um
+    M[K.RLEN] = p.ray_cell_length_um
+    M[K.RLEN_SD] = p.ray_cell_length_sd_um
+    M[K.RGROUP] = p.ray_group_cells
+    M[K.RGROUP_SD] = p.ray_group_cells_sd
+    M[K.RSQUEEZE] = p.ray_squeeze_um
+    M[K.RRAMP] = p.ray_ramp_um
+    M[K.DIST] = p.distortion
+    M[K.LARGE_P] = p.large_distortion_probability
+    M[K.BEND_A] = p.global_bend_um
+    M[K.BEND_WL] = p.global_bend_wavelength_um
+    return M
+
+
+_tile_lock = threading.Lock()
+
+
+@functools.lru_cache(maxsize=512)
+def _tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    M = np.frombuffer(M_bytes, dtype=np.float64)
+    out = np.empty((K.TILE + 1, K.TILE + 1, 2))
+    stats = np.zeros(N_STATS, np.int64)
+    K.distortion_tile(np.uint64(seed), M, a, b, out, stats)
+    out.setflags(write=False)
+    return out, stats
+
+
+def _patch(seed, M, r_lo, r_hi, t_lo, t_hi, stats):
+    """Distortion grid covering [r_lo, r_hi] × [t_lo, t_hi] µm, assembled from cached tiles."""
+    G = M[K.PITCH] / K.GRID_PER_PITCH
+    span = K.TILE * G
+    a0, a1 = math.floor(r_lo / span), math.floor(r_hi / span)
+    b0, b1 = math.floor(t_lo / span), math.floor(t_hi / span)
+    patch = np.empty(((a1 - a0 + 1) * K.TILE + 1, (b1 - b0 + 1) * K.TILE + 1, 2))
+    key = M.tobytes()
+    for a in range(a0, a1 + 1):
+        for b in range(b0, b1 + 1):
+            hits = _tile.cache_info().hits
+            tile, tstats = _tile(int(seed), key, a, b)
+            if _tile.cache_info().hits == hits:
+                stats += tstats
+            i, j = (a - a0) * K.TILE, (b - b0) * K.TILE
+            patch[i:i + K.TILE + 1, j:j + K.TILE + 1] = tile
+    return patch, a0 * K.TILE, b0 * K.TILE
+
+
+def _plies(p: WoodParams, seed: int, t_lo_um: float, t_hi_um: float):
+    """(index, cos, sin, ΔR, ΔT, ΔL, seed, T range [µm]) of the plies crossing [t_lo, t_hi]."""
+    if p.laminate is None:
+        yield 0, 1.0, 0.0, 0.0, 0.0, 0.0, seed, -math.inf, math.inf
+        return
+    th = p.ply_thickness_um
+    for idx in range(math.floor(t_lo_um / th), math.floor(t_hi_um / th) + 1):
+        angle = math.radians(p.laminate[idx % len(p.laminate)])
+        ply_seed = int(np.uint64(_rng.hash5(np.uint64(seed), _rng.PLY, idx, 0, 0)))
+        offsets = [1000.0 * _rng.uniform(np.uint64(seed), _rng.PLY, idx, 1, q) for q in range(3)]
+        cs, sn = math.cos(angle), math.sin(angle)
+        if abs(sn) < 1e-15:
+            sn = 0.0
+        yield idx, cs, sn, offsets[0], offsets[1], offsets[2], ply_seed, idx * th, (idx + 1) * th
+
+
+def generate_block(
+    params: WoodParams,
+    grid: Grid,
+    start: tuple[int, int, int],
+    shape: tuple[int, int, int],
+    *,
+    seed: int,
+    stats: np.ndarray | None = None,
+) -> np.ndarray:
+    """Generate voxels ``[start, start + shape)`` of the volume on ``grid``.
+
+    Parameters
+    ----------
+    params : WoodParams
+        Validated microstructure parameters.
+    grid : Grid
+        Voxel size [µm] and origin [µm] of the volume; voxel (i, j, k) has its
+        centre at ``origin + (index + 0.5) * voxel``.
+    start, shape : tuple of 3 int
+        Global voxel index of the block's first voxel, and the block shape.
+    seed : int
+        Non-negative seed; every random value is a hash of it.
+    stats : ndarray of int64, optional
+        Work counters (see ``STAT_NAMES``) incremented in place.
+
+    Returns
+    -------
+    ndarray of shape (R, T, L), uint8
+        1 = cell wall, 0 = polymer.
+    """
+    if stats is None:
+        stats = np.zeros(N_STATS, np.int64)
+    M = model_constants(params)
+    v = grid.voxel_um
+    org = np.asarray(grid.origin_um, dtype=np.float64)
+    gstart = np.asarray(start, dtype=np.int64)
+    nR, nT, nL = shape
+    buf = np.empty((nL, nR, nT), np.uint8)
+    lo = org + gstart * v
+    hi = org + (gstart + np.asarray(shape)) * v
+    t_centres = org[1] + (gstart[1] + np.arange(nT) + 0.5) * v
+    c = params.node_pitch_um
+    for _, cs, sn, oR, oT, oL, ply_seed, t0, t1 in _plies(params, seed, lo[1], hi[1]):
+        sel = np.nonzero((t_centres >= t0) & (t_centres < t1))[0]
+        if sel.size == 0:
+            continue
+        j_lo, j_hi = int(sel[0]), int(sel[-1]) + 1
+        corners_r = [cs * r + sn * l + oR for r in (lo[0], hi[0]) for l in (lo[2], hi[2])]
+        r_lo, r_hi = min(corners_r), max(corners_r)
+        tt_lo, tt_hi = t_centres[j_lo] + oT, t_centres[j_hi - 1] + oT
+        pseed = np.uint64(ply_seed)
+        patch, gi0, gj0 = _patch(pseed, M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0, stats)
+        dmax = float(np.abs(patch).max())
+        margin = dmax + max(c, 0.5 * params.ray_seriate * (params.ray_cell_width_um
+                                                            + params.wall_thickness_um))
+        vessels = np.empty((4096, 5), np.int64)
+        nv = K.vessels_in_region(
+            pseed, M,
+            math.floor((r_lo - margin) / c) - 6, math.ceil((r_hi + margin) / c) + 6,
+            math.floor((tt_lo - margin) / c) - 6, math.ceil((tt_hi + margin) / c) + 6,
+            vessels,
+        )
+        K.fill_block(buf, pseed, M, gstart, org, v, j_lo, j_hi,
+                     np.array([cs, sn, oR, oT, oL]), patch, gi0, gj0, dmax,
+                     vessels[:max(nv, 1)], nv, stats)
+    return np.ascontiguousarray(buf.transpose(1, 2, 0))
