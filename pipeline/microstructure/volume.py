@@ -1,0 +1,274 @@
+"""Lazily generated wood volumes stored as chunked OME-Zarr.
+
+A volume is a Zarr v3 group holding one uint8 array ``"0"`` (axes [R, T, L],
+1 = cell wall, 0 = polymer) plus the parameters that generate it.  The
+array is the cache of generated chunks: a chunk is computed the first time
+it is read (or when :meth:`WoodVolume.generate` is asked for it) and written
+once.  Chunks never written read as the sentinel :data:`NOT_GENERATED`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import shutil
+import uuid
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+from .. import __version__
+from ..params import Grid, ParameterError, WoodParams, validate
+from .model import generate_block
+
+ARRAY = "0"
+NOT_GENERATED = 255
+AXES = ("r", "t", "l")
+
+
+def _ome_attrs(grid: Grid, name: str) -> dict:
+    """OME-Zarr (NGFF 0.5) multiscales metadata: voxel size and origin in µm."""
+    return {
+        "version": "0.5",
+        "multiscales": [{
+            "name": name,
+            "axes": [{"name": a, "type": "space", "unit": "micrometer"} for a in AXES],
+            "datasets": [{
+                "path": ARRAY,
+                "coordinateTransformations": [
+                    {"type": "scale", "scale": [grid.voxel_um] * 3},
+                    {"type": "translation", "translation": list(grid.origin_um)},
+                ],
+            }],
+        }],
+    }
+
+
+class WoodVolume:
+    """A chunked wood volume whose chunks are generated on first access.
+
+    Use :meth:`create` for a new store and :meth:`open` for an existing one;
+    index it like an array (``vol[0:100, :, 5]``) to read voxels.
+    """
+
+    def __init__(self, path: Path, params: WoodParams, grid: Grid, seed: int):
+        self.path = Path(path)
+        self.params = params
+        self.grid = grid
+        self.seed = int(seed)
+        self._array = zarr.open_array(self.path / ARRAY, mode="r+")
+
+    # ------------------------------------------------------------------ create/open
+    @classmethod
+    def create(
+        cls,
+        path: str | Path,
+        params: WoodParams,
+        grid: Grid,
+        *,
+        seed: int,
+        chunks: Sequence[int] = (128, 128, 128),
+        overwrite: bool = False,
+    ) -> "WoodVolume":
+        """Create an empty (nothing generated) volume store at ``path``."""
+        path = Path(path)
+        chunks = tuple(int(c) for c in chunks)
+        if len(chunks) != 3 or any(c < 1 for c in chunks):
+            raise ParameterError(f"`chunks` must be three positive integers R,T,L, got {chunks!r}")
+        if not isinstance(seed, (int, np.integer)) or seed < 0 or seed >= 2**63:
+            raise ParameterError(f"`seed` must be an integer in [0, 2**63), got seed={seed!r}")
+        if path.exists() and not overwrite:
+            raise ParameterError(f"`out` must not exist already (use --overwrite), got {str(path)!r}")
+        chunks = tuple(min(c, s) for c, s in zip(chunks, grid.shape))
+        group = zarr.open_group(path, mode="w", zarr_format=3)
+        group.attrs["ome"] = _ome_attrs(grid, path.stem)
+        group.attrs["twray"] = {
+            "kind": "wood-volume",
+            "version": __version__,
+            "seed": int(seed),
+            "voxel_um": grid.voxel_um,
+            "origin_um": list(grid.origin_um),
+            "params": params.to_dict(),
+            "phase": "1 = cell wall, 0 = polymer; 255 = chunk not generated yet",
+        }
+        group.create_array(
+            ARRAY, shape=grid.shape, chunks=chunks, dtype="uint8",
+            fill_value=NOT_GENERATED, dimension_names=list(AXES),
+        )
+        return cls(path, params, grid, seed)
+
+    @classmethod
+    def open(cls, path: str | Path) -> "WoodVolume":
+        path = Path(path)
+        try:
+            group = zarr.open_group(path, mode="r")
+            meta = dict(group.attrs)["twray"]
+        except Exception:
+            raise ParameterError(f"`volume` must be a twray wood volume (.zarr), got {str(path)!r}") from None
+        p = dict(meta["params"])
+        if p.get("laminate") is not None:
+            p["laminate"] = tuple(p["laminate"])
+        params = validate(WoodParams(**p))
+        shape = tuple(zarr.open_array(path / ARRAY, mode="r").shape)
+        grid = Grid(shape, float(meta["voxel_um"]), tuple(meta["origin_um"]))
+        return cls(path, params, grid, meta["seed"])
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self._array.shape)
+
+    @property
+    def chunks(self) -> tuple[int, int, int]:
+        return tuple(self._array.chunks)
+
+    @property
+    def chunk_grid(self) -> tuple[int, int, int]:
+        return tuple(math.ceil(s / c) for s, c in zip(self.shape, self.chunks))
+
+    def chunk_region(self, idx: Sequence[int]) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """(start, shape) of chunk ``idx``."""
+        start = tuple(i * c for i, c in zip(idx, self.chunks))
+        shape = tuple(min(c, s - st) for c, s, st in zip(self.chunks, self.shape, start))
+        return start, shape
+
+    def all_chunks(self) -> list[tuple[int, int, int]]:
+        return list(itertools.product(*(range(n) for n in self.chunk_grid)))
+
+    def generated_chunks(self) -> set[tuple[int, int, int]]:
+        """Indices of the chunks present in the store."""
+        root = self.path / ARRAY / "c"
+        out = set()
+        if root.is_dir():
+            for dirpath, _, files in os.walk(root):
+                rel = Path(dirpath).relative_to(root).parts
+                for f in files:
+                    if len(rel) == 2 and f.isdigit():
+                        out.add((int(rel[0]), int(rel[1]), int(f)))
+        return out
+
+    # ------------------------------------------------------------------ generation
+    def _slices(self, idx):
+        start, shape = self.chunk_region(idx)
+        return tuple(slice(s, s + n) for s, n in zip(start, shape))
+
+    def ensure_chunk(self, idx: Sequence[int]) -> np.ndarray:
+        """Return chunk ``idx``, generating and storing it if it is not there yet."""
+        sl = self._slices(idx)
+        data = self._array[sl]
+        if data.size and data.flat[0] == NOT_GENERATED:
+            start, shape = self.chunk_region(idx)
+            data = generate_block(self.params, self.grid, start, shape, seed=self.seed)
+            self._array[sl] = data
+        return data
+
+    def chunks_of(self, region: tuple[slice, ...]) -> list[tuple[int, int, int]]:
+        """Indices of the chunks that intersect a region given as slices."""
+        ranges = []
+        for sl, c in zip(region, self.chunks):
+            ranges.append(range(sl.start // c, (sl.stop - 1) // c + 1) if sl.stop > sl.start else range(0))
+        return list(itertools.product(*ranges))
+
+    def _normalise(self, key) -> tuple[tuple[slice, ...], tuple]:
+        if not isinstance(key, tuple):
+            key = (key,)
+        key = key + (slice(None),) * (3 - len(key))
+        region, squeeze = [], []
+        for k, n in zip(key, self.shape):
+            if isinstance(k, (int, np.integer)):
+                k = int(k) + (n if k < 0 else 0)
+                if not 0 <= k < n:
+                    raise IndexError(f"index {k} out of range for axis of length {n}")
+                region.append(slice(k, k + 1))
+                squeeze.append(0)
+            elif isinstance(k, slice):
+                start, stop, step = k.indices(n)
+                if step != 1:
+                    raise IndexError("WoodVolume supports unit-step slices only")
+                region.append(slice(start, max(start, stop)))
+                squeeze.append(slice(None))
+            else:
+                raise IndexError(f"unsupported index {k!r}")
+        return tuple(region), tuple(squeeze)
+
+    def __getitem__(self, key) -> np.ndarray:
+        region, squeeze = self._normalise(key)
+        for idx in self.chunks_of(region):
+            self.ensure_chunk(idx)
+        return self._array[region][squeeze]
+
+    def generate(
+        self,
+        chunks: Iterable[Sequence[int]] | None = None,
+        *,
+        scheduler=None,
+        batch: int = 1,
+    ) -> int:
+        """Generate the given chunks (default: all) in parallel with Dask.
+
+        Each Dask task owns whole chunks and writes them itself, so no two
+        tasks ever write the same object.  ``scheduler`` is anything
+        ``dask.compute`` accepts ("threads", "sync", a ``distributed.Client``);
+        the default is the local thread pool (the kernels release the GIL).
+        Returns the number of chunks generated now.
+        """
+        import dask
+
+        todo = sorted(set(map(tuple, chunks)) if chunks is not None else self.all_chunks())
+        todo = [c for c in todo if c not in self.generated_chunks()]
+        if not todo:
+            return 0
+        groups = [todo[i:i + batch] for i in range(0, len(todo), batch)]
+        tasks = [dask.delayed(_generate_chunks)(str(self.path), g) for g in groups]
+        kwargs = {}
+        if scheduler is None or isinstance(scheduler, str):
+            kwargs["scheduler"] = scheduler or "threads"
+        else:
+            kwargs["scheduler"] = scheduler
+        results = dask.compute(*tasks, **kwargs)
+        return int(sum(results))
+
+    def wall_fraction(self) -> float:
+        return float(np.mean(self[:, :, :]))
+
+    def info(self) -> dict:
+        return {
+            "path": str(self.path),
+            "shape": list(self.shape),
+            "chunks": list(self.chunks),
+            "voxel_um": self.grid.voxel_um,
+            "origin_um": list(self.grid.origin_um),
+            "seed": self.seed,
+            "chunks_generated": len(self.generated_chunks()),
+            "chunks_total": int(np.prod(self.chunk_grid)),
+            "params": self.params.to_dict(),
+        }
+
+
+def _generate_chunks(path: str, chunk_indices) -> int:
+    vol = WoodVolume.open(path)
+    for idx in chunk_indices:
+        vol.ensure_chunk(idx)
+    return len(chunk_indices)
+
+
+def staged_path(out: Path) -> Path:
+    """A sibling path to build ``out`` in, so that a failure leaves nothing at ``out``."""
+    return out.with_name(f".{out.name}.partial-{uuid.uuid4().hex[:8]}")
+
+
+def publish(staged: Path, out: Path, overwrite: bool) -> None:
+    """Move a finished store into place (atomic rename on one filesystem)."""
+    if out.exists():
+        if not overwrite:
+            raise ParameterError(f"`out` must not exist already (use --overwrite), got {str(out)!r}")
+        shutil.rmtree(out)
+    os.replace(staged, out)
+
+
+def describe(path: str | Path) -> str:
+    return json.dumps(WoodVolume.open(path).info(), indent=2)
