@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -110,6 +110,8 @@ def _coerce(name: str, value: Any, where: str) -> Any:
             raise ParameterError(f"{where}`{name}` must be one of {', '.join(allowed)}, got {value!r}")
         return value
     if name == "laminate":
+        if isinstance(value, list) and len(value) == 1 and isinstance(value[0], str):
+            value = value[0]  # YAML reads [0/-45/90] as a list of one string
         if isinstance(value, str):
             value = _parse_ply_string(value, where)
         if not isinstance(value, (list, tuple)) or not value:
@@ -269,8 +271,6 @@ def parse_set(items: list[str]) -> dict[str, Any]:
             value = yaml.safe_load(raw) if raw.strip() else None
         except yaml.YAMLError:
             value = raw
-        if key == "laminate" and isinstance(value, str):
-            value = _parse_ply_string(value, "--set ")
         out[key] = value
     return out
 
@@ -335,7 +335,6 @@ class Grid:
     shape: tuple[int, int, int]
     voxel_um: float = 0.5
     origin_um: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    extra: dict = field(default_factory=dict, compare=False)
 
 
 def make_grid(size_um, voxel_um: float, origin_um, params: WoodParams) -> Grid:

@@ -1,0 +1,137 @@
+"""The command line: the generate contract, slices, and bad input (one line, exit 2, nothing written)."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from pipeline.microstructure.volume import WoodVolume
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_generate_writes_a_volume_and_slices(tmp_path, capsys):
+    out = tmp_path / "v.zarr"
+    code, stdout, _ = run(capsys, "generate", "--preset", "birch", "--size-um", "30,25,20",
+                          "--chunks", "32,32,16", "--seed", "3", "--set", "vessels=false",
+                          "--out", str(out))
+    assert code == 0, stdout
+    vol = WoodVolume.open(out)
+    assert vol.shape == (60, 50, 40) and vol.chunks == (32, 32, 16)
+    assert vol.generated_chunks() == set(vol.all_chunks())
+    assert not vol.params.vessels and vol.seed == 3
+    assert "wall fraction" in stdout
+    code, stdout, _ = run(capsys, "slices", str(out), "--out", str(tmp_path / "png"))
+    assert code == 0
+    for name in ("slice_RT.png", "slice_LT.png", "slice_LR.png", "slices.png"):
+        assert (tmp_path / "png" / name).stat().st_size > 0
+
+
+def test_lazy_generate_writes_metadata_only(tmp_path, capsys):
+    out = tmp_path / "lazy.zarr"
+    code, stdout, _ = run(capsys, "generate", "--size-um", "1500,1500,1500", "--lazy",
+                          "--out", str(out))
+    assert code == 0 and "lazy" in stdout
+    assert WoodVolume.open(out).generated_chunks() == set()
+
+
+def test_config_file_and_set_overrides(tmp_path, capsys):
+    cfg = tmp_path / "wood.yaml"
+    cfg.write_text("preset: birch\nwall_thickness_um: 3.0\nray_cells: false\n")
+    out = tmp_path / "c.zarr"
+    code, _, err = run(capsys, "generate", "--config", str(cfg), "--set", "fibre_diameter_um=20",
+                       "--size-um", "10,10,10", "--out", str(out))
+    assert code == 0, err
+    p = WoodVolume.open(out).params
+    assert (p.wall_thickness_um, p.ray_cells, p.fibre_diameter_um) == (3.0, False, 20.0)
+
+
+def test_laminate_notation_on_the_command_line(tmp_path, capsys):
+    out = tmp_path / "lam.zarr"
+    code, _, err = run(capsys, "generate", "--set", "laminate=[0/-45/90/45/0]", "--size-um",
+                       "10,10,10", "--out", str(out))
+    assert code == 0, err
+    assert WoodVolume.open(out).params.laminate == (0.0, -45.0, 90.0, 45.0, 0.0)
+
+
+BAD = [
+    (["--set", "wall_thickness_um=-2"], "wall_thickness_um", "> 0"),
+    (["--set", "wall_thickness_um=15"], "wall_thickness_um", "keeps a lumen"),
+    (["--set", "wall_thickness_um=20", "--set", "fibre_diameter_um=14.5"], "wall_thickness_um", "<"),
+    (["--preset", "oak"], "preset", "birch"),
+    (["--set", "wall_thicknes_um=2"], "wall_thicknes_um", "unknown parameter"),
+    (["--set", "wall_thickness_um=thick"], "wall_thickness_um", "must be a number"),
+    (["--set", "vessels=maybe"], "vessels", "true or false"),
+    (["--set", "ray_seriate=2.5"], "ray_seriate", "integer"),
+    (["--set", "vessel_pair_fraction=1.5"], "vessel_pair_fraction", "probability"),
+    (["--set", "laminate=[0/abc/90]"], "laminate", "[0/-45/90/45/0]"),
+    (["--size-um", "0,150,100"], "size_um", "> 0"),
+    (["--size-um", "150,150"], "size_um", "three"),
+    (["--voxel-um", "1.5"], "voxel_um", "wall_thickness_um/2"),
+    (["--voxel-um", "-0.5"], "voxel_um", "> 0"),
+    (["--seed", "-1"], "seed", ">= 0"),
+    (["--seed", "one"], "seed", "integer"),
+    (["--chunks", "0,64,64"], "chunks", "> 0"),
+    (["--origin-um", "a,b,c"], "origin_um", "numbers"),
+    (["--set", "fibre_diameter_um"], "--set", "key=value"),
+]
+
+
+@pytest.mark.parametrize("extra, field, rule", BAD, ids=[b[1] + "-" + str(i) for i, b in enumerate(BAD)])
+def test_bad_input_one_line_exit_2_nothing_written(tmp_path, capsys, extra, field, rule):
+    out = tmp_path / "bad.zarr"
+    argv = ["generate", "--size-um", "150,150,100", "--out", str(out)]
+    # a later --size-um wins in argparse, so the bad one can simply be appended
+    code, stdout, err = run(capsys, *(argv + extra))
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("twray: error:")
+    assert field in lines[0] and rule in lines[0], lines[0]
+    assert list(tmp_path.iterdir()) == []  # no store, no partial store
+
+
+def test_bad_yaml_config_names_file_line_and_field(tmp_path, capsys):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("wall_thickness_um: 2.0\nvesels: false\n")
+    code, _, err = run(capsys, "generate", "--config", str(cfg), "--size-um", "10,10,10",
+                       "--out", str(tmp_path / "x.zarr"))
+    assert code == 2
+    assert "bad.yaml line 2" in err and "`vesels`" in err
+    assert not (tmp_path / "x.zarr").exists()
+
+
+def test_existing_output_is_not_overwritten_without_flag(tmp_path, capsys):
+    out = tmp_path / "v.zarr"
+    assert run(capsys, "generate", "--size-um", "5,5,5", "--out", str(out))[0] == 0
+    before = WoodVolume.open(out)[:, :, :]
+    code, _, err = run(capsys, "generate", "--size-um", "5,5,5", "--seed", "9", "--out", str(out))
+    assert code == 2 and "--overwrite" in err
+    assert np.array_equal(WoodVolume.open(out)[:, :, :], before)
+
+
+def test_failure_during_generation_leaves_nothing(tmp_path, capsys, monkeypatch):
+    from pipeline.microstructure import volume
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(volume, "generate_block", boom)
+    out = tmp_path / "v.zarr"
+    with pytest.raises(RuntimeError):
+        main(["generate", "--size-um", "5,5,5", "--out", str(out)])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_console_script_exit_code_is_2_for_bad_input(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "pipeline", "generate", "--size-um", "1,1,1",
+                          "--set", "wall_thickness_um=0", "--out", str(tmp_path / "v.zarr")],
+                         capture_output=True, text=True)
+    assert res.returncode == 2
+    assert res.stderr.count("\n") == 1 and "wall_thickness_um" in res.stderr

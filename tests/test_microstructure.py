@@ -1,0 +1,253 @@
+"""The wood model, measured: lumens, walls, vessels, ray cells, end plates, plies."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from pipeline.microstructure.model import N_STATS, STAT_NAMES, generate_block
+from pipeline.params import build_params, make_grid
+
+V = 0.5  # µm
+
+
+def block(size_um, *, seed, preset="birch", origin_um=(0.0, 0.0, 0.0), voxel_um=V, **overrides):
+    p = build_params(preset, overrides=overrides)
+    g = make_grid(size_um, voxel_um, origin_um, p)
+    return generate_block(p, g, (0, 0, 0), g.shape, seed=seed)
+
+
+def ridge_thickness_um(vol, voxel_um, step=10):
+    """Median double-wall thickness from the distance-transform ridge of R-T slices."""
+    out = []
+    for k in range(0, vol.shape[2], step):
+        wall = vol[:, :, k].astype(bool)
+        d = ndi.distance_transform_edt(wall)
+        ridge = wall & (d == ndi.maximum_filter(d, size=3))
+        out.append(2.0 * d[ridge] - 1.0)
+    return float(np.median(np.concatenate(out))) * voxel_um
+
+
+def lumen_areas_um2(slice_rt, voxel_um):
+    """Areas of the lumens (polymer components) not cut by the slice border."""
+    lab, n = ndi.label(slice_rt == 0)
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    areas = ndi.sum_labels(np.ones_like(lab), lab, index=np.arange(1, n + 1))
+    keep = ~np.isin(np.arange(1, n + 1), border)
+    return areas[keep] * voxel_um**2
+
+
+@pytest.fixture(scope="module")
+def birch():
+    """The acceptance sample: 150 x 150 x 100 µm of birch at 0.5 µm."""
+    return block((150, 150, 100), seed=1)
+
+
+def test_birch_sample_shape_values_and_wall_fraction(birch):
+    assert birch.shape == (300, 300, 200)
+    assert birch.dtype == np.uint8
+    assert set(np.unique(birch)) == {0, 1}
+    assert 0.2 <= birch.mean() <= 0.4
+
+
+def test_plain_fibre_lattice_wall_fraction_matches_geometry():
+    # Inset ellipses in the brick lattice: 1 - π(c - t)(c + push - t) / (4c²) ≈ 0.323.
+    vol = block((150, 150, 40), seed=2, vessels=False, ray_cells=False, end_plates=False,
+                distortion=0.0, global_bend_um=0.0)
+    c, t, push = 7.25, 1.0, 1.0
+    expected = 1 - math.pi * (c - t) * (c + push - t) / (4 * c * c)
+    assert vol.mean() == pytest.approx(expected, abs=0.02)
+
+
+def test_fibre_lumen_size_distribution():
+    vol = block((200, 200, 20), seed=3, vessels=False, ray_cells=False)
+    areas = lumen_areas_um2(vol[:, :, 20], V)
+    nominal = math.pi * (7.25 - 1.0) * (7.25 + 1.0 - 1.0)  # ≈ 142 µm²
+    assert 150 < len(areas) <= 200  # (200 µm)² / (4 c²) ≈ 190 fibres, less those the border cuts
+    assert np.median(areas) == pytest.approx(nominal, rel=0.15)
+    # Jitter and per-cell walls spread the sizes, but no fibre is a vessel.
+    spread = np.percentile(areas, 90) / np.percentile(areas, 10)
+    assert 1.2 < spread < 2.5
+    assert areas.max() < 3 * nominal
+
+
+@pytest.mark.parametrize("wall_um, diameter_um", [(2.0, 14.5), (4.0, 29.0)])
+def test_double_wall_thickness_follows_parameter(wall_um, diameter_um):
+    vol = block((150, 150, 50), seed=4, wall_thickness_um=wall_um, fibre_diameter_um=diameter_um,
+                vessels=False, ray_cells=False)
+    assert ridge_thickness_um(vol, V) == pytest.approx(wall_um, abs=0.4)
+
+
+def test_wall_thickness_doubles_when_parameter_doubles():
+    thin = block((150, 150, 30), seed=5, fibre_diameter_um=29.0, vessels=False, ray_cells=False)
+    thick = block((150, 150, 30), seed=5, fibre_diameter_um=29.0, wall_thickness_um=4.0,
+                  vessels=False, ray_cells=False)
+    ratio = ridge_thickness_um(thick, V) / ridge_thickness_um(thin, V)
+    assert 1.6 < ratio < 2.4
+    assert thick.mean() > thin.mean() + 0.1
+
+
+@pytest.mark.parametrize("vessels", [True, False])
+def test_vessels_present_or_absent(vessels):
+    vol = block((400, 400, 2), seed=6, voxel_um=1.0, vessels=vessels, ray_cells=False)
+    areas = lumen_areas_um2(vol[:, :, 1], 1.0)
+    fibre = np.median(areas)
+    n_large = int(np.sum(areas > 6 * fibre))
+    if vessels:
+        # Birch: a vessel lumen ≈ π·19·20 µm² ≈ 8 fibre lumens; tens per mm².
+        assert n_large >= 4
+        assert np.median(areas[areas > 6 * fibre]) == pytest.approx(
+            math.pi * (3.2 * 7.25 - 2.5) * (3 * 7.25 - 2.5), rel=0.3)
+    else:
+        assert n_large == 0
+
+
+def ray_cell_lumens(vol, voxel_um):
+    """Polymer components shaped like ray cells: longer along R than along L, short in L."""
+    lab, n = ndi.label(vol == 0)
+    count = 0
+    for sl in ndi.find_objects(lab):
+        ext = [(s.stop - s.start) * voxel_um for s in sl]
+        if ext[2] < 25 and ext[0] > 1.2 * ext[2] and ext[0] > 10 and sl[2].start > 0 \
+                and sl[2].stop < vol.shape[2]:
+            count += 1
+    return count
+
+
+@pytest.mark.parametrize("ray_cells", [True, False])
+def test_ray_cells_present_or_absent(ray_cells):
+    vol = block((120, 300, 600), seed=7, voxel_um=1.0, ray_cells=ray_cells, vessels=False)
+    n = ray_cell_lumens(vol, 1.0)
+    if ray_cells:
+        assert n >= 10
+    else:
+        assert n == 0
+
+
+def end_plates(vol, voxel_um, plate_max_um=4.0, open_min_um=5.0):
+    """Count short wall runs along L between two long polymer runs (closed lumens)."""
+    count = 0
+    for col in vol.reshape(-1, vol.shape[2]):
+        edges = np.flatnonzero(np.diff(col.astype(np.int8))) + 1
+        runs = np.diff(np.concatenate([[0], edges, [col.size]]))
+        vals = col[np.concatenate([[0], edges])]
+        for q in range(1, len(runs) - 1):
+            if (vals[q] == 1 and runs[q] * voxel_um <= plate_max_um
+                    and runs[q - 1] * voxel_um >= open_min_um and runs[q + 1] * voxel_um >= open_min_um):
+                count += 1
+    return count
+
+
+def test_fibre_end_plates_close_lumens():
+    with_plates = block((100, 100, 300), seed=8, voxel_um=1.0, vessels=False, ray_cells=False)
+    without = block((100, 100, 300), seed=8, voxel_um=1.0, vessels=False, ray_cells=False,
+                    end_plates=False)
+    # ≈ 50 fibres x 300/1170 ends each; a plate spans tens of (R, T) columns.
+    n_with, n_without = end_plates(with_plates, 1.0), end_plates(without, 1.0)
+    assert n_with > 200
+    # Without plates only rare wiggles of a lumen edge look like one.
+    assert n_without < 0.05 * n_with
+    diff = with_plates != without
+    assert diff.any() and np.all(with_plates[diff] == 1)  # plates only add wall
+
+
+def mean_run_of_lines(lines):
+    """Mean length of polymer runs along a set of 1-D lines."""
+    runs = []
+    for line in lines:
+        d = np.diff(np.pad(line == 0, 1).astype(np.int8))
+        runs.append(np.flatnonzero(d == -1) - np.flatnonzero(d == 1))
+    return float(np.mean(np.concatenate(runs)))
+
+
+def mean_run(img, axis):
+    """Mean polymer run along an axis of a 2-D image."""
+    return mean_run_of_lines(np.moveaxis(img, axis, 0).T)
+
+
+def diag_runs(img):
+    """Mean polymer run along the R+L and the R-L diagonals of an (R, L) image."""
+    n = min(img.shape)
+    offsets = range(-n // 2, n // 2)
+    diag = [np.diagonal(img, o) for o in offsets]
+    anti = [np.diagonal(img[::-1], o) for o in offsets]
+    return mean_run_of_lines(diag), mean_run_of_lines(anti)
+
+
+def test_laminate_plies_are_rotated_in_the_LR_plane():
+    vol = block((150, 100, 150), seed=9, laminate=(0, 90, 45, -45), ply_thickness_um=25.0,
+                vessels=False, ray_cells=False)
+    plies = [vol[:, 50 * q + 25, :] for q in range(4)]  # (R, L) images mid-ply
+    r0, l0 = mean_run(plies[0], 0), mean_run(plies[0], 1)
+    r90, l90 = mean_run(plies[1], 0), mean_run(plies[1], 1)
+    assert l0 > 4 * r0  # fibres along L
+    assert r90 > 4 * l90  # fibres along R
+    d45, a45 = diag_runs(plies[2])
+    dm45, am45 = diag_runs(plies[3])
+    # ±45° plies: fibres along one diagonal of the L-R plane, the other for -45°.
+    assert max(d45, a45) > 3 * min(d45, a45)
+    assert max(dm45, am45) > 3 * min(dm45, am45)
+    assert (d45 > a45) != (dm45 > am45)
+
+
+def test_laminate_ply_boundaries_follow_T():
+    vol = block((60, 100, 60), seed=10, laminate=(0, 90), ply_thickness_um=50.0)
+    plain = block((60, 100, 60), seed=10)
+    # The first ply is a rotated copy of nothing: an unrotated ply with its own seed
+    # and offset, so it differs from the plain wood but has the same wall fraction.
+    assert not np.array_equal(vol[:, :100], plain[:, :100])
+    assert abs(vol[:, :100].mean() - plain[:, :100].mean()) < 0.08
+
+
+def test_balsa_thin_walls_and_solid_fraction():
+    vol = block((200, 200, 100), seed=11, preset="balsa")
+    assert 0.07 <= vol.mean() <= 0.15
+    fibres = block((200, 200, 10), seed=11, preset="balsa", vessels=False, ray_cells=False)
+    assert ridge_thickness_um(fibres, V, step=5) == pytest.approx(1.4, abs=0.4)
+
+
+def test_same_seed_same_voxels_other_seed_other_voxels():
+    a = block((40, 40, 40), seed=12)
+    b = block((40, 40, 40), seed=12)
+    c = block((40, 40, 40), seed=13)
+    assert np.array_equal(a, b)
+    assert (a != c).mean() > 0.2
+
+
+def test_a_block_is_the_same_voxels_as_the_corresponding_part_of_a_larger_one():
+    p = build_params("birch")
+    g = make_grid((100, 100, 100), V, (0, 0, 0), p)
+    whole = generate_block(p, g, (0, 0, 0), g.shape, seed=14)
+    part = generate_block(p, g, (37, 101, 55), (50, 60, 70), seed=14)
+    assert np.array_equal(part, whole[37:87, 101:161, 55:125])
+
+
+def test_region_10_mm_away_costs_the_same_as_at_the_origin():
+    """Nothing is walked from the origin: the work for a block is set by the block.
+
+    Work counters are compared (they vary only with the local amount of
+    distortion), and, as a guard on what counters cannot see, the time ratio
+    with a generous bound: walking fibre chains from the origin would cost ~9x.
+    """
+    p = build_params("birch")
+    shape = (96, 96, 96)
+    counts, times = [], []
+    for origin in [(0.0, 0.0, 0.0), (10_000.0, 10_000.0, 10_000.0)]:
+        g = make_grid((48, 48, 48), V, origin, p)
+        generate_block(p, g, (0, 0, 0), shape, seed=15)  # warm the distortion-tile cache
+        stats = np.zeros(N_STATS, np.int64)
+        best = math.inf
+        for _ in range(3):
+            t0 = time.perf_counter()
+            vol = generate_block(p, g, (0, 0, 0), shape, seed=15, stats=stats)
+            best = min(best, time.perf_counter() - t0)
+        counts.append(dict(zip(STAT_NAMES, stats // 3)))
+        times.append(best)
+        assert 0.2 < vol.mean() < 0.45
+    near, far = counts
+    assert far["voxels"] == near["voxels"]
+    for name in ("node_states", "chain_lookups"):
+        assert far[name] == pytest.approx(near[name], rel=0.3), name
+    assert times[1] < 2.0 * times[0]
