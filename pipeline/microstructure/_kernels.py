@@ -594,43 +594,32 @@ def _vessel_phase(pR, pT, VG, vessels, nv, first, wall):
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def point_phase(seed, M, K, pR, pT, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr):
-    """Phase (1 wall, 0 polymer) at pre-image (pR, pT) on the slice at L.
+def _squeeze_and_classify(pT, c, W2, lam, rays, nr):
+    """Ray band test and squeeze pull-back.  Returns (pT after squeeze, ray row or -1)."""
+    for r in range(nr):
+        if abs(pT - rays[r, 0]) < rays[r, 1]:
+            return pT, r
+    for r in range(nr):
+        d = pT - rays[r, 0]
+        x = abs(d) - rays[r, 1]
+        if x < lam:
+            # Pull-back of the squeeze: the band edge maps to the removed row's edge.
+            q = 1.0 - x / lam
+            shift = rays[r, 6] * (c - W2) * q * q * q
+            pT = pT + shift if d > 0 else pT - shift
+    return pT, -1
 
-    K holds per-call scalars: (pitch, 1/pitch, unused, ray half-width,
-    squeeze support, vessel wall, polygon flag).
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def _fibre_phase(pR, pT, inv_c, n_lo, m_lo, FE):
+    """Phase in the fibre lattice (ellipse lumens), branch-free.
+
+    Lumens of row m = 2j reach |w - m| < 2 nodes, so only rows 2·j0 and
+    2·j0 + 2 (j0 = floor(w/2)) and, in each, the two centres bracketing u
+    can contain the point.  Closed lumens carry a huge bias in FE[..., 4].
     """
-    c = K[0]
-    if nr > 0:
-        for r in range(nr):
-            d = pT - rays[r, 0]
-            b = rays[r, 1]
-            if abs(d) < b:
-                return ray_cell_phase(seed, M, pR, pT, L, rays[r, 0], b, rays[r, 2],
-                                      rays[r, 3], np.int64(rays[r, 4]), np.int64(rays[r, 5]))
-        lam = K[4]
-        for r in range(nr):
-            d = pT - rays[r, 0]
-            x = abs(d) - rays[r, 1]
-            if x < lam:
-                # Pull-back of the squeeze: the band edge maps to the removed row's edge.
-                q = 1.0 - x / lam
-                shift = rays[r, 6] * (c - K[3]) * q * q * q
-                pT = pT + shift if d > 0 else pT - shift
-    u = pR * K[1]
-    w = pT * K[1]
-    if nv > 0:
-        first = VIDX[np.int64(math.floor(u)) - n_lo, np.int64(math.floor(w)) - m_lo]
-        if first >= 0:
-            ph = _vessel_phase(pR, pT, VG, vessels, nv, first, K[5])
-            if ph >= 0:
-                return np.uint8(ph)
-    if K[6] != 0.0:
-        return _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt)
-    # Lumens of row m = 2j reach |w - m| < margin < 2 nodes, so only rows
-    # 2·j0 and 2·j0 + 2 (j0 = floor(w/2)) and, in each, the two centres
-    # bracketing u can contain the point.  Branch-free: closed lumens carry an
-    # infinite bias in FE[..., 4].
+    u = pR * inv_c
+    w = pT * inv_c
     j0 = np.int64(math.floor(w * 0.5))
     n_fl = np.int64(math.floor(u))
     qmin = 1e300
@@ -643,9 +632,34 @@ def point_phase(seed, M, K, pR, pT, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, 
             dT = pT - FE[ii, mi, 1]
             q = dR * dR * FE[ii, mi, 2] + dT * dT * FE[ii, mi, 3] + FE[ii, mi, 4]
             qmin = min(qmin, q)
-    if qmin < 1.0:
-        return POLYMER
-    return WALL
+    return POLYMER if qmin < 1.0 else WALL
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def point_phase(seed, M, pR, pT, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr):
+    """Phase (1 wall, 0 polymer) at pre-image (pR, pT) on the slice at L.
+
+    The general path, one point at a time; :func:`_eval_bucket` computes the
+    same function with the common fibre case in a call-free loop.
+    """
+    c = M[PITCH]
+    W2 = 0.5 * ray_band_width(M)
+    pT, r = _squeeze_and_classify(pT, c, W2, M[RSQUEEZE] * M[SCALE], rays, nr)
+    if r >= 0:
+        return ray_cell_phase(seed, M, pR, pT, L, rays[r, 0], rays[r, 1], rays[r, 2],
+                              rays[r, 3], np.int64(rays[r, 4]), np.int64(rays[r, 5]))
+    inv_c = 1.0 / c
+    u = pR * inv_c
+    w = pT * inv_c
+    if nv > 0:
+        first = VIDX[np.int64(math.floor(u)) - n_lo, np.int64(math.floor(w)) - m_lo]
+        if first >= 0:
+            ph = _vessel_phase(pR, pT, VG, vessels, nv, first, M[VWALL])
+            if ph >= 0:
+                return np.uint8(ph)
+    if M[SHAPE] == 1.0:
+        return _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt)
+    return _fibre_phase(pR, pT, inv_c, n_lo, m_lo, FE)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -694,21 +708,48 @@ def _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0, gj0, G,
-                 seed, M, K, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr):
-    # The voxel loop is its own small function: LLVM optimises it far better
-    # than when it sits inside the large fill_block.
+                 seed, M, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr):
+    """Phases of the voxels of one slice bucket.
+
+    The first pass has no calls, so LLVM keeps it tight: it resolves plain
+    fibre voxels and queues the rest (ray bands, vessel cells, polygon
+    cells), which the second pass hands to :func:`point_phase`.
+    """
+    c = M[PITCH]
+    inv_c = 1.0 / c
+    W2 = 0.5 * ray_band_width(M)
+    lam = M[RSQUEEZE] * M[SCALE]
+    polygon = M[SHAPE] == 1.0
+    nT = j_hi - j_lo
+    qj = np.empty(nT, np.int64)
+    qR = np.empty(nT)
+    qT = np.empty(nT)
     for s in range(start, stop):
         idx = order[s]
         i = idx // nL
         k = idx % nL
+        nq = 0
         for j in range(j_lo, j_hi):
             if rotated:
                 pR, pT = pull_back(patch, gi0, gj0, G, Rp[i, k], Tp[j])
             else:
                 pR = P1[i, j, 0]
                 pT = P1[i, j, 1]
-            out[k, i, j] = point_phase(seed, M, K, pR, pT, L, n_lo, m_lo, FE, FF, Nt,
-                                       vessels, nv, VG, VIDX, rays, nr)
+            sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
+            special = r >= 0 or polygon
+            if not special and nv > 0:
+                special = VIDX[np.int64(math.floor(pR * inv_c)) - n_lo,
+                               np.int64(math.floor(sT * inv_c)) - m_lo] >= 0
+            if special:
+                qj[nq] = j
+                qR[nq] = pR
+                qT[nq] = pT
+                nq += 1
+            else:
+                out[k, i, j] = _fibre_phase(pR, sT, inv_c, n_lo, m_lo, FE)
+        for q in range(nq):
+            out[k, i, qj[q]] = point_phase(seed, M, qR[q], qT[q], L, n_lo, m_lo, FE, FF, Nt,
+                                           vessels, nv, VG, VIDX, rays, nr)
 
 
 # --------------------------------------------------------------------------
@@ -758,8 +799,6 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
                 P1[i, j, 1] = b
     W2 = 0.5 * ray_band_width(M) if M[RAYS] != 0.0 else 0.0
     t_margin = dmax + max(c, W2) + 1.0
-    K = np.array([c, 1.0 / c, 0.0, W2,
-                  M[RSQUEEZE] * M[SCALE], M[VWALL], M[SHAPE]])
     m_lo = np.int64(math.floor((Tp[j_lo] - t_margin) / c)) - 5
     m_hi = np.int64(math.ceil((Tp[j_hi - 1] + t_margin) / c)) + 5
     nm = m_hi - m_lo + 1
@@ -795,6 +834,6 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
         nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VIDX, rays,
                          stats)
         _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0,
-                     gj0, G, seed, M, K, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr)
+                     gj0, G, seed, M, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr)
         stats[ST_VOXELS] += (stop - start) * (j_hi - j_lo)
         start = stop
