@@ -80,6 +80,7 @@ BAD = [
     (["--chunks", "0,64,64"], "chunks", "> 0"),
     (["--origin-um", "a,b,c"], "origin_um", "numbers"),
     (["--set", "fibre_diameter_um"], "--set", "key=value"),
+    (["--set", "node_jitter=0.3"], "node_jitter", "in [0, 0.2]"),
 ]
 
 
