@@ -1,0 +1,192 @@
+"""Where the tracer's voxels come from: user volumes and lazily generated wood.
+
+A source hands out fixed-shape chunks on request.  Voxels outside a finite
+volume read as OUTSIDE; generated wood is unbounded along R and L, so rays
+that spread sideways simply visit more chunks.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..microstructure.model import generate_block
+from ..params import Grid, ParameterError, WoodParams
+from . import _kernels as K
+
+
+class ArraySource:
+    """A user volume (axes [R, T, L], 1 = wall, 0 = polymer) held as an array or Zarr array.
+
+    Parameters
+    ----------
+    array : array-like of shape (R, T, L)
+        Anything sliceable to numpy (``numpy.ndarray``, ``zarr.Array``).
+    chunks : tuple of 3 int
+        Chunk shape the tracer pages in.
+    """
+
+    unbounded = (False, False)
+
+    def __init__(self, array, *, chunks=(64, 64, 64)):
+        if getattr(array, "ndim", None) != 3:
+            raise ParameterError(f"`volume` must be a 3-D array (R, T, L), got shape {np.shape(array)}")
+        self.array = array
+        self.shape = tuple(int(s) for s in array.shape)
+        self.chunks = tuple(int(min(c, s)) for c, s in zip(chunks, self.shape))
+
+    def inside(self, idx) -> bool:
+        return all(0 <= i < math.ceil(s / c) for i, s, c in zip(idx, self.shape, self.chunks))
+
+    def get(self, idx) -> np.ndarray:
+        out = np.full(self.chunks, K.OUTSIDE, np.uint8)
+        sl = tuple(slice(i * c, min((i + 1) * c, s)) for i, c, s in zip(idx, self.chunks, self.shape))
+        block = np.asarray(self.array[sl])
+        if block.size and block.max() > 1:
+            raise ParameterError("`volume` must hold 0 (polymer) and 1 (wall) only, "
+                                 f"got values up to {int(block.max())}")
+        out[tuple(slice(0, b) for b in block.shape)] = block
+        return out
+
+
+class WoodSource:
+    """Generated wood of a given thickness along T, unbounded along R and L.
+
+    Chunks are generated on request by the model (or read from a Zarr cache
+    of the same wood when ``volume`` is given).
+    """
+
+    unbounded = (True, True)
+
+    def __init__(self, params: WoodParams, *, thickness_um: float, voxel_um: float = 0.5,
+                 seed: int = 1, chunks=(128, 128, 128)):
+        nT = int(round(thickness_um / voxel_um))
+        if nT < 1:
+            raise ParameterError(f"`thickness` must be at least one voxel, got {thickness_um:g} µm")
+        self.params = params
+        self.seed = int(seed)
+        self.grid = Grid((0, nT, 0), float(voxel_um), (0.0, 0.0, 0.0))
+        self.shape = (0, nT, 0)  # 0: unbounded
+        self.chunks = tuple(int(c) for c in chunks)
+        self.generated = 0
+
+    def inside(self, idx) -> bool:
+        return 0 <= idx[1] < math.ceil(self.shape[1] / self.chunks[1])
+
+    def get(self, idx) -> np.ndarray:
+        cR, cT, cL = self.chunks
+        start = (idx[0] * cR, idx[1] * cT, idx[2] * cL)
+        nT = min(cT, self.shape[1] - start[1])
+        out = np.full(self.chunks, K.OUTSIDE, np.uint8)
+        out[:, :nT, :] = generate_block(self.params, self.grid, start, (cR, nT, cL), seed=self.seed)
+        self.generated += 1
+        return out
+
+
+def load_volume(path: str | Path):
+    """Read a user volume: ``.npy``, Zarr (a twray store or a bare array), or a folder of TIFF slices."""
+    path = Path(path)
+    if not path.exists():
+        raise ParameterError(f"`volume` must be an existing .npy, .zarr or TIFF folder, got {str(path)!r}")
+    if path.suffix == ".npy":
+        return np.load(path, mmap_mode="r")
+    if path.is_dir() and (path / "zarr.json").exists():
+        import zarr
+
+        node = zarr.open(path, mode="r")
+        if hasattr(node, "shape"):
+            return node
+        return node["0"]
+    if path.is_dir():
+        import tifffile
+
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
+        if not files:
+            raise ParameterError(f"`volume` folder holds no .tif slices: {str(path)!r}")
+        return np.stack([tifffile.imread(f) for f in files], axis=-1)
+    raise ParameterError(f"`volume` must be .npy, .zarr or a folder of TIFF slices, got {str(path)!r}")
+
+
+class ChunkCache:
+    """The resident chunks: a pool array plus the lookup table the kernels read.
+
+    Keeps at most ``capacity`` chunks, evicting the least recently requested.
+    """
+
+    def __init__(self, source, capacity: int = 256):
+        self.source = source
+        self.capacity = int(capacity)
+        self.slots: dict[tuple, int] = {}
+        self.outside: set[tuple] = set()
+        self.last_use: dict[tuple, int] = {}
+        self.tick = 0
+        self.pool = np.empty((max(1, self.capacity),) + tuple(source.chunks), np.uint8)
+        self.free = list(range(self.capacity))[::-1]
+        self.loads = 0
+        self._rebuild()
+
+    @property
+    def chunk_shape(self) -> np.ndarray:
+        return np.asarray(self.source.chunks, np.int64)
+
+    def _rebuild(self):
+        keys = list(self.slots) + list(self.outside)
+        if not keys:
+            self.box = np.zeros(3, np.int64)
+            self.table = np.full((1, 1, 1), -1, np.int32)
+            return
+        lo = np.min(keys, axis=0)
+        hi = np.max(keys, axis=0)
+        self.box = lo.astype(np.int64)
+        self.table = np.full(tuple(hi - lo + 1), -1, np.int32)
+        for k, s in self.slots.items():
+            self.table[tuple(np.subtract(k, lo))] = s
+        for k in self.outside:
+            self.table[tuple(np.subtract(k, lo))] = -2
+
+    def require(self, keys) -> None:
+        """Make the chunks ``keys`` resident (or known to be outside)."""
+        self.tick += 1
+        keys = [tuple(int(v) for v in k) for k in keys]
+        wanted = [k for k in dict.fromkeys(keys)]
+        for k in wanted:
+            self.last_use[k] = self.tick
+        new = [k for k in wanted if k not in self.slots and k not in self.outside]
+        if not new:
+            return
+        inside = [k for k in new if self.source.inside(k)]
+        self.outside.update(k for k in new if not self.source.inside(k))
+        if len(inside) > self.capacity:
+            raise MemoryError(f"{len(inside)} chunks needed at once, capacity {self.capacity}")
+        while len(self.free) < len(inside):
+            victim = min((k for k in self.slots if self.last_use.get(k, 0) < self.tick),
+                         key=lambda k: self.last_use.get(k, 0))
+            self.free.append(self.slots.pop(victim))
+        for k in inside:
+            s = self.free.pop()
+            self.pool[s] = self.source.get(k)
+            self.slots[k] = s
+            self.loads += 1
+        self._rebuild()
+
+    def voxels(self, lo, shape) -> np.ndarray:
+        """A small box of voxels (clamped at the T faces) through the resident chunks."""
+        cs = self.source.chunks
+        idx = [np.arange(l, l + n) for l, n in zip(lo, shape)]
+        idx[1] = np.clip(idx[1], 0, self.source.shape[1] - 1)
+        for a in (0, 2):
+            if self.source.shape[a] > 0:
+                idx[a] = np.clip(idx[a], 0, self.source.shape[a] - 1)
+        need = {(i // cs[0], j // cs[1], k // cs[2]) for i in idx[0][[0, -1]]
+                for j in idx[1][[0, -1]] for k in idx[2][[0, -1]]}
+        self.require(need)
+        out = np.empty(shape, np.uint8)
+        for a, i in enumerate(idx[0]):
+            for b, j in enumerate(idx[1]):
+                for c, k in enumerate(idx[2]):
+                    key = (i // cs[0], j // cs[1], k // cs[2])
+                    s = self.slots[key]
+                    out[a, b, c] = self.pool[s, i - key[0] * cs[0], j - key[1] * cs[1], k - key[2] * cs[2]]
+        return out
