@@ -121,6 +121,134 @@ def cmd_generate(args) -> int:
     return 0
 
 
+def _add_trace(sub):
+    p = sub.add_parser("trace", help="trace a beam through a volume and report FWHM_R, FWHM_L, haze")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--volume", help="user volume: .npy, .zarr or a folder of TIFF slices "
+                                      "(axes R, T, L; 1 = wall)")
+    src.add_argument("--preset", help="generate wood lazily from this species preset")
+    p.add_argument("--config", help="YAML file of wood parameters (with --preset)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--thickness-mm", help="sample thickness along T [mm] (with --preset)")
+    p.add_argument("--voxel-um", default="0.5", help="voxel size [µm]")
+    p.add_argument("--delta-ri", required=True, help="RI of the wall minus RI of the polymer")
+    p.add_argument("--ri-polymer", default="1.49", help="RI of the polymer (default 1.49)")
+    p.add_argument("--rays", default="1000")
+    p.add_argument("--beam-um", default="150", help="side of the square beam footprint [µm]")
+    p.add_argument("--beam-origin-um", default=None, help="beam centre R,L on the entrance face [µm]")
+    p.add_argument("--method", default="accurate", help="paper, fast or accurate")
+    p.add_argument("--exit", default="internal", help="angles inside the sample (internal) or in air")
+    p.add_argument("--fresnel", action="store_true", help="partial Fresnel reflection")
+    p.add_argument("--step-vox", default=None, help="paper marching step [voxels] (default 2)")
+    p.add_argument("--seed", default="1")
+    p.add_argument("--out", default=None, help="per-ray dataset (.nc or .zarr)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.set_defaults(func=cmd_trace)
+
+
+def cmd_trace(args) -> int:
+    import json
+
+    from .analysis import summarize
+    from .optics.sources import ArraySource, WoodSource, load_volume
+    from .optics.tracer import settings_for, square_beam, trace_beam
+
+    voxel = _float(args.voxel_um, "voxel_um")
+    if not voxel > 0:
+        raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel:g}")
+    dri = _float(args.delta_ri, "delta_ri")
+    n_poly = _float(args.ri_polymer, "ri_polymer")
+    n_wall = n_poly + dri
+    if not (1.0 <= n_poly <= 3.0 and 1.0 <= n_wall <= 3.0):
+        raise ParameterError(f"`delta_ri` and `ri_polymer` must give indices in [1, 3], got "
+                             f"polymer {n_poly:g} and wall {n_wall:g}")
+    rays = _int(args.rays, "rays", 1)
+    beam_um = _float(args.beam_um, "beam_um")
+    if not beam_um > 0:
+        raise ParameterError(f"`beam_um` must be > 0 µm, got beam_um={beam_um:g}")
+    seed = _int(args.seed, "seed", 0)
+    changes = {"exit": args.exit}
+    if args.step_vox is not None:
+        changes["step_vox"] = _float(args.step_vox, "step_vox")
+    if args.fresnel:
+        changes["fresnel"] = True
+    settings = settings_for(args.method, **changes)
+    if args.volume:
+        if args.thickness_mm or args.overrides or args.config:
+            raise ParameterError("`--thickness-mm`, `--set` and `--config` apply to --preset, not --volume")
+        source = ArraySource(load_volume(args.volume))
+        centre = (source.shape[0] / 2.0, source.shape[2] / 2.0)
+        wall_um = None
+    else:
+        if args.thickness_mm is None:
+            raise ParameterError("`--thickness-mm` is required with --preset")
+        thickness = _float(args.thickness_mm, "thickness_mm")
+        if not thickness > 0:
+            raise ParameterError(f"`thickness_mm` must be > 0, got thickness_mm={thickness:g}")
+        params = build_params(args.preset, args.config, parse_set(args.overrides))
+        make_grid((1.0, thickness * 1000.0, 1.0), voxel, (0.0, 0.0, 0.0), params)
+        source = WoodSource(params, thickness_um=thickness * 1000.0, voxel_um=voxel, seed=seed)
+        centre = (0.0, 0.0)
+        wall_um = params.wall_thickness_um
+    if args.beam_origin_um is not None:
+        parts = args.beam_origin_um.split(",")
+        if len(parts) != 2:
+            raise ParameterError(f"`beam_origin_um` must be R,L [µm], got {args.beam_origin_um!r}")
+        centre = (_float(parts[0], "beam_origin_um") / voxel, _float(parts[1], "beam_origin_um") / voxel)
+    if settings.method == "paper" and wall_um is not None and settings.step_vox * voxel >= wall_um:
+        raise ParameterError(f"`step_vox` must be smaller than the wall ({wall_um:g} µm = "
+                             f"{wall_um / voxel:g} voxels), got step_vox={settings.step_vox:g}")
+    beam = square_beam(rays, beam_um / voxel, centre, seed=seed)
+    t0 = time.perf_counter()
+    result = trace_beam(source, beam, n_wall=n_wall, n_poly=n_poly, settings=settings, seed=seed)
+    elapsed = time.perf_counter() - t0
+    summary = summarize(result, seed=seed)
+    summary.update({"delta_ri": dri, "ri_polymer": n_poly, "seconds": elapsed,
+                    "chunks_loaded": result.chunks_loaded})
+    if args.out:
+        _write_rays(result, summary, voxel, args.out)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"{summary['n_transmitted']}/{summary['n_rays']} transmitted "
+              f"(method {summary['method']}, exit {summary['exit']}): "
+              f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}°, "
+              f"haze {100 * summary['haze']:.1f} %, {elapsed:.1f} s")
+    return 0
+
+
+def _write_rays(result, summary, voxel, out):
+    import json
+
+    import xarray as xr
+
+    from .optics.tracer import STATUS_NAMES
+
+    codes = sorted(STATUS_NAMES)
+    ds = xr.Dataset(
+        {
+            "theta_r": ("ray", result.theta_r, {"long_name": "exit angle in the R-T plane", "units": "degree"}),
+            "theta_l": ("ray", result.theta_l, {"long_name": "exit angle in the L-T plane", "units": "degree"}),
+            "exit_r": ("ray", result.position[:, 0] * voxel, {"long_name": "exit position R", "units": "um"}),
+            "exit_l": ("ray", result.position[:, 2] * voxel, {"long_name": "exit position L", "units": "um"}),
+            "direction": (("ray", "axis"), result.exit_direction, {"long_name": "exit direction (R, T, L)",
+                                                                  "units": "1"}),
+            "path_length": ("ray", result.path * voxel, {"long_name": "geometric path length", "units": "um"}),
+            "n_interfaces": ("ray", result.events.astype("int32"), {"long_name": "interfaces met"}),
+            "status": ("ray", result.status.astype("int32"), {
+                "long_name": "ray status", "flag_values": codes,
+                "flag_meanings": " ".join(STATUS_NAMES[c] for c in codes)}),
+        },
+        coords={"ray": range(result.status.size), "axis": ["R", "T", "L"]},
+        attrs={"Conventions": "CF-1.10", "title": "twray per-ray trace result",
+               "source": f"twray {__version__}", "summary": json.dumps(summary)},
+    )
+    if str(out).endswith(".zarr"):
+        ds.to_zarr(out, mode="w")
+    else:
+        ds.to_netcdf(out, engine="scipy")
+
+
 def cmd_slices(args) -> int:
     from .microstructure.export import write_slices
     from .microstructure.volume import WoodVolume
@@ -151,6 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"twray {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_generate(sub)
+    _add_trace(sub)
     p = sub.add_parser("slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
     p.add_argument("volume")
     p.add_argument("--out", required=True, help="output directory")

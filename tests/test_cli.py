@@ -136,3 +136,53 @@ def test_console_script_exit_code_is_2_for_bad_input(tmp_path):
                          capture_output=True, text=True)
     assert res.returncode == 2
     assert res.stderr.count("\n") == 1 and "wall_thickness_um" in res.stderr
+
+
+def test_trace_json_on_lazily_generated_wood(tmp_path, capsys):
+    import json
+
+    import xarray as xr
+
+    out = tmp_path / "rays.nc"
+    code, stdout, err = run(capsys, "trace", "--preset", "birch", "--thickness-mm", "0.05",
+                            "--delta-ri", "0.01", "--rays", "60", "--beam-um", "40",
+                            "--method", "fast", "--json", "--out", str(out))
+    assert code == 0, err
+    s = json.loads(stdout)
+    for key in ("fwhm_r_deg", "fwhm_l_deg", "haze", "n_rays", "n_transmitted", "n_lost", "method"):
+        assert key in s
+    assert s["n_rays"] == 60 and s["n_transmitted"] + s["n_lost"] == 60 and s["method"] == "fast"
+    # Walls run along L: light spreads in the R-T plane far more than in L-T.
+    assert s["fwhm_r_deg"] > 3 * s["fwhm_l_deg"]
+    ds = xr.open_dataset(out)
+    assert ds.sizes["ray"] == 60 and ds["theta_r"].attrs["units"] == "degree"
+    ds.close()
+
+
+def test_trace_user_volume_npy_index_matched(tmp_path, capsys):
+    import json
+
+    vol = np.zeros((40, 30, 40), np.uint8)
+    vol[:, 10:14, :] = 1
+    np.save(tmp_path / "v.npy", vol)
+    code, stdout, err = run(capsys, "trace", "--volume", str(tmp_path / "v.npy"), "--delta-ri", "0",
+                            "--rays", "50", "--beam-um", "10", "--json")
+    assert code == 0, err
+    s = json.loads(stdout)
+    assert s["n_transmitted"] == 50 and s["fwhm_r_deg"] == 0.0 and s["haze"] == 0.0
+    assert s["interfaces_per_ray"] == 2.0
+
+
+@pytest.mark.parametrize("extra, field", [
+    (["--method", "magic"], "method"),
+    (["--delta-ri", "big"], "delta_ri"),
+    (["--rays", "0"], "rays"),
+    (["--method", "paper", "--step-vox", "5"], "step_vox"),
+    (["--exit", "water"], "exit"),
+])
+def test_trace_bad_input(tmp_path, capsys, extra, field):
+    argv = ["trace", "--preset", "birch", "--thickness-mm", "0.05", "--delta-ri", "0.01",
+            "--out", str(tmp_path / "r.nc")] + extra
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and field in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
