@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: install demo test bench bench-generate clean
+.PHONY: install demo test bench bench-generate bench-trace clean
 
 install: $(STAMP)
 
@@ -24,10 +24,13 @@ demo: install
 test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-bench: bench-generate
+bench: bench-generate bench-trace
 
 bench-generate: install
 	$(BIN)/python benchmarks/bench_generate.py --out results/bench.json
 
 clean:
 	rm -rf results/demo results/cache
+
+bench-trace: install
+	$(BIN)/python benchmarks/bench_trace.py --out results/bench.json

@@ -122,7 +122,7 @@ class ChunkCache:
         self.outside: set[tuple] = set()
         self.last_use: dict[tuple, int] = {}
         self.tick = 0
-        self.pool = np.empty((max(1, self.capacity),) + tuple(source.chunks), np.uint8)
+        self.pool = np.empty((max(1, self.capacity),) + tuple(source.chunks), np.uint8)  # pages on use
         self.free = list(range(self.capacity))[::-1]
         self.loads = 0
         self._rebuild()
@@ -146,24 +146,33 @@ class ChunkCache:
         for k in self.outside:
             self.table[tuple(np.subtract(k, lo))] = -2
 
-    def require(self, keys) -> None:
-        """Make the chunks ``keys`` resident (or known to be outside)."""
+    def require(self, keys, keep=()) -> None:
+        """Make the chunks ``keys`` resident (or known to be outside).
+
+        Chunks in ``keys`` and ``keep`` (those live rays stand in) are never
+        evicted; when they alone exceed the capacity the pool grows rather
+        than thrash.
+        """
         self.tick += 1
         keys = [tuple(int(v) for v in k) for k in keys]
-        wanted = [k for k in dict.fromkeys(keys)]
-        for k in wanted:
+        protected = set(keys) | {tuple(int(v) for v in k) for k in keep}
+        for k in protected:
             self.last_use[k] = self.tick
-        new = [k for k in wanted if k not in self.slots and k not in self.outside]
+        new = [k for k in dict.fromkeys(keys) if k not in self.slots and k not in self.outside]
         if not new:
             return
         inside = [k for k in new if self.source.inside(k)]
         self.outside.update(k for k in new if not self.source.inside(k))
-        if len(inside) > self.capacity:
-            raise MemoryError(f"{len(inside)} chunks needed at once, capacity {self.capacity}")
-        while len(self.free) < len(inside):
-            victim = min((k for k in self.slots if self.last_use.get(k, 0) < self.tick),
-                         key=lambda k: self.last_use.get(k, 0))
-            self.free.append(self.slots.pop(victim))
+        evictable = sorted((k for k in self.slots if k not in protected),
+                           key=lambda k: self.last_use.get(k, 0))
+        while len(self.free) < len(inside) and evictable:
+            self.free.append(self.slots.pop(evictable.pop(0)))
+        if len(self.free) < len(inside):
+            grow = len(inside) - len(self.free)
+            extra = np.empty((grow,) + self.pool.shape[1:], np.uint8)
+            self.free.extend(range(self.pool.shape[0], self.pool.shape[0] + grow))
+            self.pool = np.concatenate([self.pool, extra])
+            self.capacity = self.pool.shape[0]
         for k in inside:
             s = self.free.pop()
             self.pool[s] = self.source.get(k)

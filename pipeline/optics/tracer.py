@@ -211,7 +211,9 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
         if waiting.size == 0 and asking.size == 0:
             break
         if waiting.size:
-            cache.require(map(tuple, request[waiting]))
+            live = np.flatnonzero(status >= K.NEEDS_CHUNK)
+            occupied = {tuple(c) for c in (np.floor(pos[live]).astype(np.int64) // cs) if c[1] >= 0}
+            cache.require(map(tuple, request[waiting]), keep=occupied)
         half = settings.svm_box // 2
         for r in asking:
             centre = pos[r]

@@ -1,0 +1,129 @@
+"""Tracer speed and accuracy per preset, and a 1.5 mm lazy birch trace.
+
+Writes the "trace" section of results/bench.json:
+- rods: error of each preset against the exact deflection law of a
+  voxelised rod (R = 30 voxels, 1.50 in 1.49, random sub-voxel centres);
+- birch: rays/s and interfaces/s on a resident 0.25 mm birch block, and the
+  speed-up per interface of fast/accurate over paper;
+- lazy_1_5mm: 1000 rays through 1.5 mm of lazily generated birch: time,
+  peak RSS, chunks generated against the chunks of the whole paper sample.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from pipeline.analysis import summarize
+from pipeline.microstructure.model import generate_block
+from pipeline.optics.sources import ArraySource, WoodSource
+from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
+from pipeline.params import build_params, make_grid
+
+M_REL = 1.50 / 1.49
+
+
+def rod_errors(method: str, rays_per_rod: int, n_rods: int = 4, R: float = 30.0, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    got, exact, events, seconds = [], [], 0, 0.0
+    for off in rng.uniform(0, 1, size=(n_rods, 2)):
+        c0, c1 = R + 20 + off[0], R + 20 + off[1]
+        nn = int(2 * R + 42)
+        i, j = np.meshgrid(np.arange(nn) + 0.5, np.arange(nn) + 0.5, indexing="ij")
+        vol = np.repeat((((i - c0) ** 2 + (j - c1) ** 2) < R * R).astype(np.uint8)[:, :, None], 32, axis=2)
+        b = rng.uniform(-R, R, rays_per_rod)
+        origins = np.column_stack([c0 + b, np.zeros_like(b), np.full_like(b, 16.0)])
+        t0 = time.perf_counter()
+        res = trace_beam(ArraySource(vol, chunks=(nn, nn, 32)),
+                         Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(b.size)),
+                         n_wall=1.50, n_poly=1.49, settings=settings_for(method))
+        seconds += time.perf_counter() - t0
+        events += int(res.events.sum())
+        got.append(res.theta_r)
+        exact.append(-np.degrees(2 * (np.arcsin(b / R) - np.arcsin(b / (M_REL * R)))))
+    got, exact = np.concatenate(got), np.concatenate(exact)
+    return {
+        "rays": int(got.size),
+        "rms_error_deg": float(np.sqrt(np.mean((got - exact) ** 2))),
+        "median_abs_error_deg": float(np.median(np.abs(got - exact))),
+        "haze": float(np.mean(np.abs(got) > 2.5)),
+        "haze_exact_same_rays": float(np.mean(np.abs(exact) > 2.5)),
+        "ks_statistic": float(stats.ks_2samp(got, exact).statistic),
+        "us_per_interface": 1e6 * seconds / max(events, 1),
+    }
+
+
+def birch_speed(method: str, rays: int, block) -> dict:
+    src = ArraySource(block, chunks=(128, 128, 128))
+    beam = square_beam(rays, 150.0 / 0.5, (block.shape[0] / 2, block.shape[2] / 2), seed=3)
+    trace_beam(src, square_beam(2, 10.0, (100, 100), seed=1), n_wall=1.50, n_poly=1.49,
+               settings=settings_for(method))  # compile
+    t0 = time.perf_counter()
+    res = trace_beam(src, beam, n_wall=1.50, n_poly=1.49, settings=settings_for(method))
+    dt = time.perf_counter() - t0
+    s = summarize(res, n_boot=50)
+    return {
+        "rays": rays,
+        "seconds": dt,
+        "rays_per_s": rays / dt,
+        "interfaces_per_s": float(res.events.sum()) / dt,
+        "us_per_interface": 1e6 * dt / float(res.events.sum()),
+        "fwhm_r_deg": s["fwhm_r_deg"],
+        "fwhm_l_deg": s["fwhm_l_deg"],
+        "haze": s["haze"],
+    }
+
+
+def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(128, 128, 128)) -> dict:
+    p = build_params("birch")
+    src = WoodSource(p, thickness_um=thickness_mm * 1000, seed=1, chunks=chunks)
+    t0 = time.perf_counter()
+    res = trace_beam(src, square_beam(rays, 300.0, seed=1), n_wall=1.50, n_poly=1.49,
+                     settings=settings_for("accurate"), capacity=256)
+    dt = time.perf_counter() - t0
+    s = summarize(res, n_boot=100)
+    whole = (3000 / chunks[0]) * (thickness_mm * 2000 / chunks[1]) * (2000 / chunks[2])
+    return {
+        "thickness_mm": thickness_mm, "rays": rays, "method": "accurate", "seconds": dt,
+        "chunks_generated": src.generated, "chunk_shape": list(chunks),
+        "chunks_of_whole_sample_1.5x1.5x1mm": int(np.ceil(whole)),
+        "fraction_generated": src.generated / whole,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "fwhm_r_deg": s["fwhm_r_deg"], "fwhm_l_deg": s["fwhm_l_deg"], "haze": s["haze"],
+        "n_transmitted": s["n_transmitted"], "counts": s["counts"],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="results/bench.json")
+    args = ap.parse_args()
+    p = build_params("birch")
+    g = make_grid((200.0, 250.0, 200.0), 0.5, (0.0, 0.0, 0.0), p)
+    block = generate_block(p, g, (0, 0, 0), g.shape, seed=2)
+    res = {
+        "rods_R30": {"paper": rod_errors("paper", 60), "fast": rod_errors("fast", 500),
+                     "accurate": rod_errors("accurate", 500)},
+        "birch_0_25mm": {"paper": birch_speed("paper", 20, block), "fast": birch_speed("fast", 300, block),
+                         "accurate": birch_speed("accurate", 300, block)},
+    }
+    b = res["birch_0_25mm"]
+    res["speedup_per_interface_over_paper"] = {
+        m: b["paper"]["us_per_interface"] / b[m]["us_per_interface"] for m in ("fast", "accurate")}
+    res["lazy_1_5mm"] = lazy_trace()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    doc = json.loads(out.read_text()) if out.exists() else {}
+    doc["trace"] = res
+    out.write_text(json.dumps(doc, indent=2) + "\n")
+    print(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()
