@@ -80,7 +80,7 @@ def birch_speed(method: str, rays: int, block) -> dict:
     }
 
 
-def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(128, 128, 128)) -> dict:
+def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(64, 64, 64)) -> dict:
     p = build_params("birch")
     src = WoodSource(p, thickness_um=thickness_mm * 1000, seed=1, chunks=chunks)
     t0 = time.perf_counter()

@@ -272,3 +272,19 @@ def test_haze_counts_deviations_beyond_2_5_degrees():
     angles = np.radians([0.0, 1.0, 2.4, 2.6, 10.0])
     dirs = np.column_stack([np.sin(angles), np.cos(angles), np.zeros(5)])
     assert haze(dirs) == pytest.approx(2 / 5)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("method", ["fast", "accurate"])
+def test_small_chunks_and_small_capacity_still_finish_identically(method):
+    """Normal windows that straddle many chunks (and Newton steps beyond them) page in
+    what they need; the results equal those with large chunks."""
+    beam = square_beam(40, 40.0, seed=2)
+    out = []
+    for chunks, cap in [((16, 16, 16), 8), ((64, 64, 64), 512)]:
+        src = WoodSource(build_params("birch"), thickness_um=30.0, seed=4, chunks=chunks)
+        res = trace_beam(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method),
+                         capacity=cap)
+        assert res.counts()["transmitted"] == 40
+        out.append(res.direction)
+    assert np.array_equal(out[0], out[1])

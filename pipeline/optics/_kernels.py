@@ -34,6 +34,7 @@ PAPER = 0  # fixed steps, crossing at the midpoint, SVM normal (computed in Pyth
 EXACT = 1  # voxel traversal, crossing on the voxel face, Gaussian-gradient normal
 
 FRESNEL_KIND = 40  # random-stream kind for partial reflection
+NEWTON_REACH = 3.0  # the crossing point moves at most this far along the ray [voxels]
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -237,7 +238,7 @@ def smoothed_wall(pool, table, box, cs, shape, x, sigma, radius, grad):
 def surface_normal(pool, table, box, cs, shape, xf, d, sigma, radius, newton, out):
     """Normal where the ray meets the smoothed wall surface S = 1/2 near face point xf.
 
-    Up to ``newton`` Newton steps along the ray (at most 3 voxels from xf)
+    Up to ``newton`` Newton steps along the ray (at most NEWTON_REACH from xf)
     move the point onto the iso-surface, so rays crossing one staircase face
     at different places get the normals of the surface they really meet.
     Returns 1 on success, 0 for a one-phase neighbourhood, -1 for a missing chunk.
@@ -255,7 +256,7 @@ def surface_normal(pool, table, box, cs, shape, xf, d, sigma, radius, newton, ou
         slope = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
         if abs(S - 0.5) < 1e-6 or abs(slope) < 1e-3:
             break
-        t_new = min(max(t - (S - 0.5) / slope, -3.0), 3.0)
+        t_new = min(max(t - (S - 0.5) / slope, -NEWTON_REACH), NEWTON_REACH)
         if t_new == t:
             break
         t = t_new
@@ -468,8 +469,8 @@ def _advance(pos, r, d, t, path):
 
 @njit(cache=True, nogil=True)
 def _request_neighbourhood(pool, table, box, cs, shape, x, radius, request, r):
-    """Record one missing chunk of the normal's neighbourhood of x."""
-    h = np.int64(math.ceil(radius)) + 1
+    """Record one missing chunk of the normal's neighbourhood of x (Newton steps included)."""
+    h = np.int64(math.ceil(radius + NEWTON_REACH)) + 1
     for c in (-h, h):
         for b in (-h, h):
             for a in (-h, h):

@@ -61,7 +61,7 @@ class WoodSource:
     unbounded = (True, True)
 
     def __init__(self, params: WoodParams, *, thickness_um: float, voxel_um: float = 0.5,
-                 seed: int = 1, chunks=(128, 128, 128)):
+                 seed: int = 1, chunks=(64, 64, 64)):
         nT = int(round(thickness_um / voxel_um))
         if nT < 1:
             raise ParameterError(f"`thickness` must be at least one voxel, got {thickness_um:g} µm")
