@@ -85,15 +85,16 @@ def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(64, 64, 64)) -> dict:
     src = WoodSource(p, thickness_um=thickness_mm * 1000, seed=1, chunks=chunks)
     t0 = time.perf_counter()
     res = trace_beam(src, square_beam(rays, 300.0, seed=1), n_wall=1.50, n_poly=1.49,
-                     settings=settings_for("accurate"), capacity=256)
+                     settings=settings_for("accurate"), capacity=2048)
     dt = time.perf_counter() - t0
     s = summarize(res, n_boot=100)
     whole = (3000 / chunks[0]) * (thickness_mm * 2000 / chunks[1]) * (2000 / chunks[2])
     return {
         "thickness_mm": thickness_mm, "rays": rays, "method": "accurate", "seconds": dt,
-        "chunks_generated": src.generated, "chunk_shape": list(chunks),
+        "chunks_generated": src.generated, "distinct_chunks": len(src.distinct),
+        "chunk_shape": list(chunks),
         "chunks_of_whole_sample_1.5x1.5x1mm": int(np.ceil(whole)),
-        "fraction_generated": src.generated / whole,
+        "fraction_of_whole_sample": len(src.distinct) / whole,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "fwhm_r_deg": s["fwhm_r_deg"], "fwhm_l_deg": s["fwhm_l_deg"], "haze": s["haze"],
         "n_transmitted": s["n_transmitted"], "counts": s["counts"],

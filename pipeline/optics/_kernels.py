@@ -392,10 +392,9 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                 x[axis] = vox[r, axis] + (1 if sgn > 0 else 0)
                 ok = surface_normal(pool, table, box, cs, shape, x, d, sigma, radius, newton, nrm)
                 if ok < 0:
-                    for q in range(3):
-                        request[r, q] = 0
-                    # The missing chunk is somewhere in the neighbourhood: ask for all of them.
-                    _request_neighbourhood(pool, table, box, cs, shape, x, radius, request, r)
+                    if not _request_neighbourhood(pool, table, box, cs, shape, x, d, radius,
+                                                  request, r):
+                        raise RuntimeError("normal window needs a chunk the request cannot name")
                     status[r] = NEEDS_CHUNK
                     break
                 if ok == 0:
@@ -468,22 +467,30 @@ def _advance(pos, r, d, t, path):
 
 
 @njit(cache=True, nogil=True)
-def _request_neighbourhood(pool, table, box, cs, shape, x, radius, request, r):
-    """Record one missing chunk of the normal's neighbourhood of x (Newton steps included)."""
-    h = np.int64(math.ceil(radius + NEWTON_REACH)) + 1
-    for c in (-h, h):
-        for b in (-h, h):
-            for a in (-h, h):
-                i = np.int64(math.floor(x[0])) + a
-                j = min(max(np.int64(math.floor(x[1])) + b, 0), shape[1] - 1)
-                k = np.int64(math.floor(x[2])) + c
-                if shape[0] > 0:
-                    i = min(max(i, 0), shape[0] - 1)
-                if shape[2] > 0:
-                    k = min(max(k, 0), shape[2] - 1)
+def _request_neighbourhood(pool, table, box, cs, shape, x, d, radius, request, r):
+    """Record one missing chunk that the normal at face point x may read.
+
+    The box is the union of smoothed_wall's windows at both ends of the
+    Newton search (x ± NEWTON_REACH·d), computed exactly as it computes them.
+    """
+    n = 2 * np.int64(math.floor(radius)) + 2
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for q in range(3):
+        a = np.int64(math.ceil(x[q] - NEWTON_REACH * abs(d[q]) - 0.5 - radius))
+        b = np.int64(math.ceil(x[q] + NEWTON_REACH * abs(d[q]) - 0.5 - radius)) + n - 1
+        if shape[q] > 0:
+            a = min(max(a, 0), shape[q] - 1)
+            b = min(max(b, 0), shape[q] - 1)
+        lo[q] = a
+        hi[q] = b
+    for i in (lo[0], hi[0]):
+        for j in (lo[1], hi[1]):
+            for k in (lo[2], hi[2]):
                 if voxel_at(pool, table, box, cs, i, j, k) == MISSING:
                     ci, cj, ck = chunk_of(cs, i, j, k)
                     request[r, 0] = ci
                     request[r, 1] = cj
                     request[r, 2] = ck
-                    return
+                    return True
+    return False

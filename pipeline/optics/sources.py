@@ -70,7 +70,8 @@ class WoodSource:
         self.grid = Grid((0, nT, 0), float(voxel_um), (0.0, 0.0, 0.0))
         self.shape = (0, nT, 0)  # 0: unbounded
         self.chunks = tuple(int(c) for c in chunks)
-        self.generated = 0
+        self.generated = 0  # chunk generations, including regenerations after eviction
+        self.distinct: set[tuple] = set()
 
     def inside(self, idx) -> bool:
         return 0 <= idx[1] < math.ceil(self.shape[1] / self.chunks[1])
@@ -82,6 +83,7 @@ class WoodSource:
         out = np.full(self.chunks, K.OUTSIDE, np.uint8)
         out[:, :nT, :] = generate_block(self.params, self.grid, start, (cR, nT, cL), seed=self.seed)
         self.generated += 1
+        self.distinct.add(tuple(int(i) for i in idx))
         return out
 
 
