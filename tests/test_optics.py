@@ -288,3 +288,30 @@ def test_small_chunks_and_small_capacity_still_finish_identically(method):
         assert res.counts()["transmitted"] == 40
         out.append(res.direction)
     assert np.array_equal(out[0], out[1])
+
+
+def test_user_volumes_load_from_npy_zarr_and_tiff_folders_alike(tmp_path):
+    import tifffile
+    import zarr
+
+    from pipeline.optics.sources import load_volume
+
+    rng = np.random.default_rng(1)
+    vol = (rng.random((30, 20, 25)) < 0.3).astype(np.uint8)
+    np.save(tmp_path / "v.npy", vol)
+    z = zarr.create_array(tmp_path / "v.zarr", shape=vol.shape, chunks=(16, 16, 16), dtype="uint8")
+    z[:] = vol
+    (tmp_path / "tiff").mkdir()
+    for k in range(vol.shape[2]):
+        tifffile.imwrite(tmp_path / "tiff" / f"s_{k:03d}.tif", vol[:, :, k])
+    beam = square_beam(30, 16.0, (15.0, 12.5), seed=1)
+    results = []
+    for path in ("v.npy", "v.zarr", "tiff"):
+        loaded = load_volume(tmp_path / path)
+        assert np.array_equal(np.asarray(loaded[:]), vol)
+        res = trace_beam(ArraySource(loaded, chunks=(16, 16, 16)), beam, n_wall=1.6, n_poly=1.4,
+                         settings=settings_for("fast"))
+        results.append((res.direction, res.status))
+    for d, st in results[1:]:
+        assert np.array_equal(d, results[0][0]) and np.array_equal(st, results[0][1])
+    assert (results[0][1] == 3).any()  # a finite volume: some rays leave through a side
