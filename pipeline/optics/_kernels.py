@@ -113,13 +113,6 @@ def _normalise(v):
     return s
 
 
-@njit(cache=True, nogil=True)
-def _unit(v):
-    s = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    for q in range(3):
-        v[q] /= s
-
-
 # --------------------------------------------------------------------------
 # Normal estimation: gradient of the Gaussian-smoothed wall indicator
 # --------------------------------------------------------------------------
@@ -288,7 +281,7 @@ def _interface(d, nrm, medium, n_wall, n_poly, fresnel, seed, ray_id, event, new
             for q in range(3):
                 newd[q] = d[q] + 2.0 * cos_i * nrm[q]
             tir = True
-    _unit(newd)
+    _normalise(newd)
     return medium if tir else 1 - medium
 
 

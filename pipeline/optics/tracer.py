@@ -21,7 +21,6 @@ from .sources import ChunkCache
 STATUS_NAMES = {K.TRANSMITTED: "transmitted", K.REFLECTED: "reflected", K.SIDE: "side",
                 K.TRAPPED: "trapped", 5: "tir_at_exit_face"}
 TIR_EXIT = 5
-HAZE_ANGLE_DEG = 2.5
 BEAM_KIND = 41
 
 
