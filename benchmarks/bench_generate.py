@@ -8,7 +8,6 @@ under Octave (measured for the project); the goal here is >= 2e7.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
@@ -18,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _bench_json import write_section
 
 from pipeline.microstructure.model import _tile, generate_block
 from pipeline.microstructure.volume import WoodVolume
@@ -97,12 +97,7 @@ def main() -> None:
     birch = res["kernel_single_thread"]["birch"]["voxels_per_s_warm"]
     res["speedup_over_reference_per_core"] = birch / REFERENCE_VOXELS_PER_S
     res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    doc = json.loads(out.read_text()) if out.exists() else {}
-    doc["generate"] = res
-    out.write_text(json.dumps(doc, indent=2) + "\n")
-    print(json.dumps(res, indent=2))
+    write_section(args.out, "generate", res)
 
 
 if __name__ == "__main__":

@@ -12,12 +12,11 @@ Writes the "trace" section of results/bench.json:
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import time
-from pathlib import Path
 
 import numpy as np
+from _bench_json import write_section
 from scipy import stats
 
 from pipeline.analysis import summarize
@@ -118,12 +117,7 @@ def main() -> None:
     res["speedup_per_interface_over_paper"] = {
         m: b["paper"]["us_per_interface"] / b[m]["us_per_interface"] for m in ("fast", "accurate")}
     res["lazy_1_5mm"] = lazy_trace()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    doc = json.loads(out.read_text()) if out.exists() else {}
-    doc["trace"] = res
-    out.write_text(json.dumps(doc, indent=2) + "\n")
-    print(json.dumps(res, indent=2))
+    write_section(args.out, "trace", res)
 
 
 if __name__ == "__main__":

@@ -366,11 +366,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                     status[r] = SIDE
                     break
                 if v == MISSING:
-                    ci, cj, ck = chunk_of(cs, nv0, nv1, nv2)
-                    request[r, 0] = ci
-                    request[r, 1] = cj
-                    request[r, 2] = ck
-                    status[r] = NEEDS_CHUNK
+                    status[r] = _pause_for_chunk(request, r, cs, nv0, nv1, nv2)
                     break
                 if v == medium[r]:
                     _advance(pos, r, d, tmin, path)
@@ -436,11 +432,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                     status[r] = SIDE
                     break
                 if v == MISSING:
-                    ci, cj, ck = chunk_of(cs, i, j, k)
-                    request[r, 0] = ci
-                    request[r, 1] = cj
-                    request[r, 2] = ck
-                    status[r] = NEEDS_CHUNK
+                    status[r] = _pause_for_chunk(request, r, cs, i, j, k)
                     break
                 if v == medium[r]:
                     _advance(pos, r, d, step, path)
@@ -450,6 +442,16 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                 path[r] += 0.5 * step
                 status[r] = NEEDS_NORMAL
                 break
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _pause_for_chunk(request, r, cs, i, j, k):
+    """Record the chunk of voxel (i, j, k) as the one ray r waits for."""
+    ci, cj, ck = chunk_of(cs, i, j, k)
+    request[r, 0] = ci
+    request[r, 1] = cj
+    request[r, 2] = ck
+    return NEEDS_CHUNK
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -481,9 +483,6 @@ def _request_neighbourhood(pool, table, box, cs, shape, x, d, radius, request, r
         for j in (lo[1], hi[1]):
             for k in (lo[2], hi[2]):
                 if voxel_at(pool, table, box, cs, i, j, k) == MISSING:
-                    ci, cj, ck = chunk_of(cs, i, j, k)
-                    request[r, 0] = ci
-                    request[r, 1] = cj
-                    request[r, 2] = ck
+                    _pause_for_chunk(request, r, cs, i, j, k)
                     return True
     return False
