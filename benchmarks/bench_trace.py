@@ -23,6 +23,7 @@ from pipeline.analysis import summarize
 from pipeline.microstructure.model import generate_block
 from pipeline.optics.sources import ArraySource, WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
+from pipeline.optics.validation import rod_deflection_deg, voxelised_rod
 from pipeline.params import build_params, make_grid
 
 M_REL = 1.50 / 1.49
@@ -34,8 +35,7 @@ def rod_errors(method: str, rays_per_rod: int, n_rods: int = 4, R: float = 30.0,
     for off in rng.uniform(0, 1, size=(n_rods, 2)):
         c0, c1 = R + 20 + off[0], R + 20 + off[1]
         nn = int(2 * R + 42)
-        i, j = np.meshgrid(np.arange(nn) + 0.5, np.arange(nn) + 0.5, indexing="ij")
-        vol = np.repeat((((i - c0) ** 2 + (j - c1) ** 2) < R * R).astype(np.uint8)[:, :, None], 32, axis=2)
+        vol = voxelised_rod(R, (c0, c1), nn)
         b = rng.uniform(-R, R, rays_per_rod)
         origins = np.column_stack([c0 + b, np.zeros_like(b), np.full_like(b, 16.0)])
         t0 = time.perf_counter()
@@ -45,7 +45,7 @@ def rod_errors(method: str, rays_per_rod: int, n_rods: int = 4, R: float = 30.0,
         seconds += time.perf_counter() - t0
         events += int(res.events.sum())
         got.append(res.theta_r)
-        exact.append(-np.degrees(2 * (np.arcsin(b / R) - np.arcsin(b / (M_REL * R)))))
+        exact.append(rod_deflection_deg(b, R, M_REL))
     got, exact = np.concatenate(got), np.concatenate(exact)
     return {
         "rays": int(got.size),

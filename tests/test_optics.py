@@ -10,6 +10,7 @@ from pipeline.analysis import cauchy_fit, fwhm, haze, summarize
 from pipeline.optics import _kernels as K
 from pipeline.optics.sources import ArraySource, WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
+from pipeline.optics.validation import rod_deflection_deg, voxelised_rod
 from pipeline.params import build_params
 
 N_WALL, N_POLY = 1.50, 1.49
@@ -114,8 +115,7 @@ def rods(R, n_rods=8, rays=500, seed=0, method="accurate"):
     for off in rng.uniform(0, 1, size=(n_rods, 2)):
         c0, c1 = R + 20 + off[0], R + 20 + off[1]
         nn = int(2 * R + 42)
-        i, j = np.meshgrid(np.arange(nn) + 0.5, np.arange(nn) + 0.5, indexing="ij")
-        vol = np.repeat((((i - c0) ** 2 + (j - c1) ** 2) < R * R).astype(np.uint8)[:, :, None], 32, axis=2)
+        vol = voxelised_rod(R, (c0, c1), nn)
         b = rng.uniform(-R, R, rays)
         origins = np.zeros((rays, 3))
         origins[:, 0] = c0 + b
@@ -125,8 +125,7 @@ def rods(R, n_rods=8, rays=500, seed=0, method="accurate"):
                          n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method))
         assert res.counts()["transmitted"] == rays
         got.append(res.theta_r)
-        # A denser rod is a converging lens: rays above the axis turn down.
-        exact.append(-np.degrees(2 * (np.arcsin(b / R) - np.arcsin(b / (M_REL * R)))))
+        exact.append(rod_deflection_deg(b, R, M_REL))
     return np.concatenate(got), np.concatenate(exact)
 
 
@@ -145,8 +144,7 @@ def test_rod_deflection_distribution_and_haze_match_exact_optics():
 
 def test_symmetry_deflection_is_odd_in_the_impact_parameter():
     R, nn = 25.0, 90
-    i, j = np.meshgrid(np.arange(nn) + 0.5, np.arange(nn) + 0.5, indexing="ij")
-    vol = np.repeat((((i - 45) ** 2 + (j - 45) ** 2) < R * R).astype(np.uint8)[:, :, None], 32, axis=2)
+    vol = voxelised_rod(R, (45.0, 45.0), nn)
     b = np.linspace(0.37, 21.37, 30)  # 45 ± b off voxel faces, where floor() breaks mirror ties
     origins = np.zeros((60, 3))
     origins[:30, 0] = 45 + b
@@ -161,9 +159,7 @@ def test_symmetry_deflection_is_odd_in_the_impact_parameter():
 
 def test_reversibility_exit_ray_traced_back_arrives_at_the_entry_ray():
     R, nn = 25.0, 90
-    i, j = np.meshgrid(np.arange(nn) + 0.5, np.arange(nn) + 0.5, indexing="ij")
-    vol = np.repeat((((i - 45.3) ** 2 + (j - 44.6) ** 2) < R * R).astype(np.uint8)[:, :, None],
-                    32, axis=2)
+    vol = voxelised_rod(R, (45.3, 44.6), nn)
     origins = np.zeros((20, 3))
     origins[:, 0] = 45.3 + np.linspace(-18, 18, 20)
     origins[:, 2] = 16.0

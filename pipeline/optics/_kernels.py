@@ -361,12 +361,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                     status[r] = REFLECTED
                     break
                 v = voxel_at(pool, table, box, cs, nv0, nv1, nv2)
-                if v == OUTSIDE:
-                    _advance(pos, r, d, tmin, path)
-                    status[r] = SIDE
-                    break
-                if v == MISSING:
-                    status[r] = _pause_for_chunk(request, r, cs, nv0, nv1, nv2)
+                if _stops(v, pos, r, d, tmin, path, status, request, cs, nv0, nv1, nv2):
                     break
                 if v == medium[r]:
                     _advance(pos, r, d, tmin, path)
@@ -427,12 +422,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                     status[r] = TRANSMITTED if plane > 0.0 else REFLECTED
                     break
                 v = voxel_at(pool, table, box, cs, i, j, k)
-                if v == OUTSIDE:
-                    _advance(pos, r, d, step, path)
-                    status[r] = SIDE
-                    break
-                if v == MISSING:
-                    status[r] = _pause_for_chunk(request, r, cs, i, j, k)
+                if _stops(v, pos, r, d, step, path, status, request, cs, i, j, k):
                     break
                 if v == medium[r]:
                     _advance(pos, r, d, step, path)
@@ -452,6 +442,19 @@ def _pause_for_chunk(request, r, cs, i, j, k):
     request[r, 1] = cj
     request[r, 2] = ck
     return NEEDS_CHUNK
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _stops(v, pos, r, d, t, path, status, request, cs, i, j, k):
+    """Stop ray r if the next voxel (i, j, k) is outside the volume or not resident."""
+    if v == OUTSIDE:
+        _advance(pos, r, d, t, path)
+        status[r] = SIDE
+        return True
+    if v == MISSING:
+        status[r] = _pause_for_chunk(request, r, cs, i, j, k)
+        return True
+    return False
 
 
 @njit(inline="always", cache=True, nogil=True)
