@@ -249,6 +249,83 @@ def _write_rays(result, summary, voxel, out):
         ds.to_netcdf(out, engine="scipy")
 
 
+def _add_study(sub):
+    p = sub.add_parser("study", help="run parameter studies (Table 1) into results/<study>.zarr")
+    p.add_argument("files", nargs="+", metavar="FILE.yaml", help="study files, e.g. studies/table1/*.yaml")
+    p.add_argument("--scale", default="paper", help="paper (the study's numbers) or small (quick)")
+    p.add_argument("--workers", default=None, help="local worker processes (default 1, using every core)")
+    p.add_argument("--threads", default=None, help="threads per local worker (default: cores / workers)")
+    p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
+    p.add_argument("--scheduler-file", default=None, help="scheduler file of a running Dask cluster")
+    p.add_argument("--cache", default="results/cache", help="cache directory (default results/cache)")
+    p.add_argument("--results", default="results", help="where <study>.zarr goes (default results)")
+    p.add_argument("--shard-rays", default="250", help="rays per tracing task (default 250)")
+    p.add_argument("--dry-run", action="store_true", help="list each stage as cached or to compute")
+    p.set_defaults(func=cmd_study)
+
+
+def _study_client(args):
+    import os
+
+    from distributed import Client, LocalCluster
+
+    if args.scheduler and args.scheduler_file:
+        raise ParameterError("give either `--scheduler` or `--scheduler-file`, not both")
+    if args.scheduler:
+        return Client(args.scheduler), None
+    if args.scheduler_file:
+        return Client(scheduler_file=args.scheduler_file), None
+    workers = _int(args.workers, "workers", 1) if args.workers is not None else 1
+    cores = os.cpu_count() or 1
+    threads = (_int(args.threads, "threads", 1) if args.threads is not None
+               else max(1, cores // workers))
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True)
+    return Client(cluster), cluster
+
+
+def cmd_study(args) -> int:
+    import json
+
+    from .study.run import compute, describe_plan, plan_study, write_dataset
+    from .study.spec import load_study
+
+    shard_rays = _int(args.shard_rays, "shard_rays", 1)
+    if args.workers is not None:
+        _int(args.workers, "workers", 1)
+    studies = [load_study(f, scale=args.scale) for f in args.files]
+    names = [s.name for s in studies]
+    if len(set(names)) != len(names):
+        raise ParameterError(f"study files must have distinct names, got {names}")
+    t0 = time.perf_counter()
+    plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
+    if args.dry_run:
+        for plan in plans:
+            print("\n".join(describe_plan(plan)))
+        return 0
+    if not all(p.up_to_date for p in plans):
+        client, cluster = _study_client(args)
+        try:
+            print(f"twray study: dashboard {client.dashboard_link}", file=sys.stderr)
+            compute(plans, client, progress=sys.stdout.isatty())
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+        plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
+    for plan in plans:
+        out = write_dataset(plan, args.results)
+        st = plan.study
+        print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays, "
+              f"{st.scenes[0].settings.method})")
+        for summ in plan.summaries:
+            row = json.loads(summ.path.read_text())
+            print(f"  {st.dimension}={st.coordinate()[summ.scene_index]}: "
+                  f"FWHM_R {row['fwhm_r_deg']:.2f}°, FWHM_L {row['fwhm_l_deg']:.2f}°, "
+                  f"haze {100 * row['haze']:.1f} %, {row['n_transmitted']}/{row['n_rays']} transmitted")
+    print(f"{len(plans)} studies in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
 def cmd_slices(args) -> int:
     from .microstructure.export import write_slices
     from .microstructure.volume import WoodVolume
@@ -280,6 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_generate(sub)
     _add_trace(sub)
+    _add_study(sub)
     p = sub.add_parser("slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
     p.add_argument("volume")
     p.add_argument("--out", required=True, help="output directory")

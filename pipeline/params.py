@@ -87,14 +87,14 @@ class WoodParams:
         return out
 
 
-_FIELDS = {f.name: f for f in dataclasses.fields(WoodParams)}
+WOOD_FIELDS = {f.name: f for f in dataclasses.fields(WoodParams)}
 _BOOL = {"end_plates", "vessels", "ray_cells"}
 _STR = {"species": None, "cell_shape": ("ellipse", "polygon")}
 _INT = {"ray_seriate"}
 _OPTIONAL = {"vessel_wall_um", "laminate"}
 
 
-def _coerce(name: str, value: Any, where: str) -> Any:
+def coerce_field(name: str, value: Any, where: str) -> Any:
     """Convert one raw value (from YAML or ``--set``) to the field's type."""
     if name in _OPTIONAL and value is None:
         return None
@@ -243,10 +243,10 @@ def _key_lines(path: Path) -> dict[str, int]:
 
 def _apply(base: dict[str, Any], updates: dict[str, Any], where_of) -> None:
     for key, value in updates.items():
-        if key not in _FIELDS:
-            near = ", ".join(sorted(_FIELDS))
+        if key not in WOOD_FIELDS:
+            near = ", ".join(sorted(WOOD_FIELDS))
             raise ParameterError(f"{where_of(key)}unknown parameter `{key}` (known: {near})")
-        base[key] = _coerce(key, value, where_of(key))
+        base[key] = coerce_field(key, value, where_of(key))
 
 
 def load_preset(name: str) -> dict[str, Any]:

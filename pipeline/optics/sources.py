@@ -54,14 +54,15 @@ class ArraySource:
 class WoodSource:
     """Generated wood of a given thickness along T, unbounded along R and L.
 
-    Chunks are generated on request by the model (or read from a Zarr cache
-    of the same wood when ``volume`` is given).
+    Chunks are generated on request by the model, or taken from ``store`` (a
+    :class:`~pipeline.microstructure.store.WoodChunkStore` of the same wood),
+    which generates and keeps the ones it does not have yet.
     """
 
     unbounded = (True, True)
 
     def __init__(self, params: WoodParams, *, thickness_um: float, voxel_um: float = 0.5,
-                 seed: int = 1, chunks=(64, 64, 64)):
+                 seed: int = 1, chunks=(64, 64, 64), store=None):
         nT = int(round(thickness_um / voxel_um))
         if nT < 1:
             raise ParameterError(f"`thickness` must be at least one voxel, got {thickness_um:g} µm")
@@ -69,8 +70,9 @@ class WoodSource:
         self.seed = int(seed)
         self.grid = Grid((0, nT, 0), float(voxel_um), (0.0, 0.0, 0.0))
         self.shape = (0, nT, 0)  # 0: unbounded
-        self.chunks = tuple(int(c) for c in chunks)
-        self.generated = 0  # chunk generations, including regenerations after eviction
+        self.store = store
+        self.chunks = tuple(int(c) for c in (store.chunks if store is not None else chunks))
+        self.generated = 0  # chunk requests, including repeats after eviction
         self.distinct: set[tuple] = set()
 
     def inside(self, idx) -> bool:
@@ -81,7 +83,10 @@ class WoodSource:
         start = (idx[0] * cR, idx[1] * cT, idx[2] * cL)
         nT = min(cT, self.shape[1] - start[1])
         out = np.full(self.chunks, K.OUTSIDE, np.uint8)
-        out[:, :nT, :] = generate_block(self.params, self.grid, start, (cR, nT, cL), seed=self.seed)
+        if self.store is not None:
+            out[:, :nT, :] = self.store.get(idx)[:, :nT, :]
+        else:
+            out[:, :nT, :] = generate_block(self.params, self.grid, start, (cR, nT, cL), seed=self.seed)
         self.generated += 1
         self.distinct.add(tuple(int(i) for i in idx))
         return out

@@ -1,0 +1,280 @@
+"""Study YAML → validated scenes (one per value of the varied parameter).
+
+A study file declares a base scene and one parameter to vary::
+
+    title: "Table 1, study 2: refractive-index difference"
+    preset: birch            # species preset (studies/presets/)
+    wood: {}                 # overrides of the preset (WoodParams fields)
+    seed: 1
+    thickness_mm: 1.0
+    delta_ri: 0.01
+    ri_polymer: 1.49
+    rays: 1000
+    beam_um: 150
+    voxel_um: 0.5
+    trace: {method: accurate, exit: internal, fresnel: false}
+    vary: {parameter: delta_ri, values: [-0.03, -0.02, -0.01, 0.01, 0.02, 0.03]}
+
+The numbers are the paper's scale; ``--scale small`` keeps the wood and
+divides the rays, thickness and beam (see :data:`SCALES`).  Every unknown
+key or bad value raises :class:`~pipeline.params.ParameterError` naming the
+file, the line and the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..optics.tracer import PRESETS, TraceSettings, settings_for
+from ..params import ParameterError, WoodParams, WOOD_FIELDS, coerce_field, load_preset, validate
+
+# What each scale does to the paper-scale numbers of a study file.
+SCALES = {
+    "paper": {"rays": 1.0, "thickness": 1.0, "beam": 1.0},
+    "small": {"rays": 0.1, "thickness": 0.1, "beam": 0.25},
+}
+
+_TOP = {"title", "description", "preset", "wood", "seed", "thickness_mm", "delta_ri",
+        "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary"}
+_TRACE = {"method", "exit", "fresnel"}
+_SCENE_VARIABLES = {
+    # name: (dimension, units, long_name)
+    "thickness_mm": ("thickness", "mm", "TW sample thickness along T"),
+    "delta_ri": ("delta_ri", "1", "refractive-index difference, cell wall minus polymer"),
+    "ri_polymer": ("ri_polymer", "1", "refractive index of the polymer"),
+}
+
+
+@dataclass(frozen=True)
+class Scene:
+    """One traced configuration: wood, sample, optics, beam and trace settings."""
+
+    value: Any  # the varied parameter's value, as written in the study
+    wood: WoodParams
+    seed: int
+    voxel_um: float
+    thickness_um: float
+    ri_polymer: float
+    delta_ri: float
+    rays: int
+    beam_um: float
+    settings: TraceSettings
+
+    @property
+    def n_wall(self) -> float:
+        return self.ri_polymer + self.delta_ri
+
+
+@dataclass(frozen=True)
+class Study:
+    name: str
+    path: Path
+    text: str
+    scale: str
+    title: str
+    parameter: str
+    dimension: str
+    units: str
+    long_name: str
+    scenes: tuple[Scene, ...]
+
+    def coordinate(self) -> list:
+        """The varied values as a dimension coordinate (laminates as their ply notation)."""
+        out = []
+        for s in self.scenes:
+            v = s.value
+            if self.parameter == "laminate":
+                v = "none" if v is None else "/".join(f"{a:g}" for a in v)
+            out.append(v)
+        return out
+
+
+def _lines(text: str) -> dict[tuple, int]:
+    """Line numbers of keys (top level and one level down) for error messages."""
+    out: dict[tuple, int] = {}
+    node = yaml.compose(text)
+    if isinstance(node, yaml.MappingNode):
+        for k, v in node.value:
+            out[(str(k.value),)] = k.start_mark.line + 1
+            if isinstance(v, yaml.MappingNode):
+                for k2, _ in v.value:
+                    out[(str(k.value), str(k2.value))] = k2.start_mark.line + 1
+    return out
+
+
+def load_study(path, *, scale: str = "paper") -> Study:
+    """Read and validate a study file; expand it into scenes at ``scale``."""
+    path = Path(path)
+    if scale not in SCALES:
+        raise ParameterError(f"`scale` must be one of {', '.join(SCALES)}, got scale={scale!r}")
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ParameterError(f"cannot read study {str(path)!r}: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+        lines = _lines(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f" line {mark.line + 1}" if mark else ""
+        raise ParameterError(f"{path}{line}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    if not isinstance(data, dict):
+        raise ParameterError(f"{path}: a study must be a mapping of key: value")
+
+    def where(*keys) -> str:
+        return f"{path} line {lines.get(tuple(keys), lines.get(keys[:1], '?'))}: "
+
+    def fail(keys, msg):
+        raise ParameterError(where(*keys) + msg)
+
+    for k in data:
+        if k not in _TOP:
+            fail((k,), f"unknown key `{k}` (known: {', '.join(sorted(_TOP))})")
+    for k in ("vary",):
+        if k not in data:
+            raise ParameterError(f"{path}: `{k}` is required")
+
+    def number(key, default, rule, ok):
+        v = data.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            fail((key,), f"`{key}` must be a number, got {v!r}")
+        if not ok(v):
+            fail((key,), f"`{key}` must be {rule}, got {key}={v!r}")
+        return float(v)
+
+    seed = data.get("seed", 1)
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
+        fail(("seed",), f"`seed` must be an integer in [0, 2**63), got {seed!r}")
+    rays = data.get("rays", 1000)
+    if isinstance(rays, bool) or not isinstance(rays, int) or rays < 1:
+        fail(("rays",), f"`rays` must be a positive integer, got {rays!r}")
+    base = {
+        "thickness_mm": number("thickness_mm", 1.0, "> 0 mm", lambda v: v > 0),
+        "delta_ri": number("delta_ri", 0.01, "in (-0.5, 0.5)", lambda v: abs(v) < 0.5),
+        "ri_polymer": number("ri_polymer", 1.49, "in [1, 3]", lambda v: 1 <= v <= 3),
+    }
+    beam_um = number("beam_um", 150.0, "> 0 µm", lambda v: v > 0)
+    voxel_um = number("voxel_um", 0.5, "> 0 µm", lambda v: v > 0)
+
+    preset = data.get("preset", "birch")
+    if not isinstance(preset, str):
+        fail(("preset",), f"`preset` must be a preset name, got {preset!r}")
+    try:
+        wood = load_preset(preset)
+    except ParameterError as exc:
+        raise ParameterError(where("preset") + str(exc)) from None
+    overrides = data.get("wood") or {}
+    if not isinstance(overrides, dict):
+        fail(("wood",), f"`wood` must be a mapping of microstructure parameters, got {overrides!r}")
+    for k, v in overrides.items():
+        if k not in WOOD_FIELDS:
+            fail(("wood", k), f"unknown microstructure parameter `wood.{k}` "
+                              f"(known: {', '.join(sorted(WOOD_FIELDS))})")
+        wood[k] = coerce_field(k, v, "")
+
+    trace = data.get("trace") or {}
+    if not isinstance(trace, dict):
+        fail(("trace",), f"`trace` must be a mapping, got {trace!r}")
+    for k in trace:
+        if k not in _TRACE:
+            fail(("trace", k), f"unknown key `trace.{k}` (known: {', '.join(sorted(_TRACE))})")
+    method = trace.get("method", "accurate")
+    if method not in PRESETS:
+        fail(("trace", "method"), f"`trace.method` must be one of {', '.join(PRESETS)}, got {method!r}")
+    if "fresnel" in trace and not isinstance(trace["fresnel"], bool):
+        fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {trace['fresnel']!r}")
+    try:
+        settings = settings_for(method, exit=trace.get("exit", "internal"),
+                                fresnel=bool(trace.get("fresnel", False)))
+    except ParameterError as exc:
+        raise ParameterError(where("trace") + "`trace." + str(exc).lstrip("`")) from None
+
+    vary = data["vary"]
+    if not isinstance(vary, dict) or set(vary) != {"parameter", "values"}:
+        fail(("vary",), f"`vary` must be a mapping with `parameter` and `values`, got {vary!r}")
+    parameter = vary["parameter"]
+    values = vary["values"]
+    if parameter not in _SCENE_VARIABLES and parameter not in WOOD_FIELDS:
+        fail(("vary", "parameter"), f"`vary.parameter` must be one of "
+                                    f"{', '.join(sorted(_SCENE_VARIABLES))} or a microstructure "
+                                    f"parameter, got {parameter!r}")
+    if not isinstance(values, list) or not values:
+        fail(("vary", "values"), f"`vary.values` must be a non-empty list, got {values!r}")
+
+    f = SCALES[scale]
+    n_rays = max(1, int(round(rays * f["rays"])))
+    scenes = []
+    seen = set()
+    for v in values:
+        scene_vars = dict(base)
+        w = dict(wood)
+        if parameter in _SCENE_VARIABLES:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                fail(("vary", "values"), f"`vary.values` of {parameter} must be numbers, got {v!r}")
+            scene_vars[parameter] = float(v)
+        else:
+            if parameter == "laminate" and v in ("none", "None"):
+                v = None
+            try:
+                w[parameter] = coerce_field(parameter, v, "")
+            except ParameterError as exc:
+                raise ParameterError(where("vary", "values") + f"`vary.values`: {exc}") from None
+            v = w[parameter]
+        marker = repr(v)
+        if marker in seen:
+            fail(("vary", "values"), f"`vary.values` must not repeat a value, got {v!r} twice")
+        seen.add(marker)
+        thickness_um = scene_vars["thickness_mm"] * 1000.0 * f["thickness"]
+        if w.get("laminate") and "ply_thickness_um" not in overrides:
+            # Equal plies through the thickness (SPEC.md §2).
+            w["ply_thickness_um"] = thickness_um / len(w["laminate"])
+        try:
+            params = validate(WoodParams(**w))
+        except ParameterError as exc:
+            raise ParameterError(where("wood") + f"value {v!r}: {exc}") from None
+        n_poly = scene_vars["ri_polymer"]
+        n_wall = n_poly + scene_vars["delta_ri"]
+        if not 1.0 <= n_wall <= 3.0 or not abs(scene_vars["delta_ri"]) < 0.5:
+            fail(("vary",), f"`delta_ri` must give a wall index in [1, 3], got polymer {n_poly:g} "
+                            f"and wall {n_wall:g}")
+        if voxel_um > params.wall_thickness_um / 2:
+            fail(("voxel_um",), f"`voxel_um` must be <= wall_thickness_um/2 = "
+                                f"{params.wall_thickness_um / 2:g} µm, got voxel_um={voxel_um:g}")
+        if thickness_um < voxel_um:
+            fail(("thickness_mm",), f"`thickness_mm` must be at least one voxel at scale {scale}, "
+                                    f"got {thickness_um:g} µm")
+        scenes.append(Scene(value=v, wood=params, seed=int(seed), voxel_um=voxel_um,
+                            thickness_um=thickness_um, ri_polymer=n_poly,
+                            delta_ri=scene_vars["delta_ri"], rays=n_rays,
+                            beam_um=beam_um * f["beam"], settings=settings))
+
+    if parameter in _SCENE_VARIABLES:
+        dimension, units, long_name = _SCENE_VARIABLES[parameter]
+    else:
+        dimension = parameter.removesuffix("_um")
+        units = "um" if parameter.endswith("_um") else ("degree" if parameter == "laminate" else "1")
+        long_name = parameter.replace("_", " ")
+        if parameter == "laminate":
+            long_name = "laminate ply angles in the L-R plane (none: solid wood)"
+            units = "degree"
+    title = data.get("title", path.stem)
+    if not isinstance(title, str):
+        fail(("title",), f"`title` must be a string, got {title!r}")
+    return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
+                 parameter=parameter, dimension=dimension, units=units, long_name=long_name,
+                 scenes=tuple(scenes))
+
+
+def scene_record(scene: Scene) -> dict:
+    """Canonical, JSON-ready description of a scene (for cache keys and provenance)."""
+    out = dataclasses.asdict(scene)
+    out["wood"] = scene.wood.to_dict()
+    out["settings"] = dataclasses.asdict(scene.settings)
+    out["value"] = scene.value if not isinstance(scene.value, tuple) else list(scene.value)
+    return out
