@@ -4,8 +4,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
+SCALE ?= paper
+SCHEDULER ?=
+STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
+STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
-.PHONY: install demo test bench bench-generate bench-trace clean
+.PHONY: install demo test bench bench-generate bench-trace clean table1 $(STUDIES)
 
 install: $(STAMP)
 
@@ -15,7 +19,15 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ".[test]"
 	touch $(STAMP)
 
-## Main job (until the Table 1 pipeline lands): a birch sample volume and its slice images.
+## Main job: the paper's Table 1 (all studies) on a local Dask cluster, cached in results/cache.
+table1: install
+	$(BIN)/twray study $(addprefix studies/table1/,$(addsuffix .yaml,$(STUDIES))) $(STUDY_ARGS) --report results/table1-$(SCALE).md
+
+## One row of Table 1, e.g. `make study-2 SCALE=small` or `make study-1 SCHEDULER=tcp://host:8786`.
+$(STUDIES): install
+	$(BIN)/twray study studies/table1/$@.yaml $(STUDY_ARGS)
+
+## A birch sample volume and its slice images.
 demo: install
 	$(BIN)/twray generate --preset birch --size-um 150,150,100 --seed 1 --out results/demo/birch.zarr --overwrite
 	$(BIN)/twray slices results/demo/birch.zarr --out results/demo/slices

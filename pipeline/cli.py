@@ -261,6 +261,7 @@ def _add_study(sub):
     p.add_argument("--results", default="results", help="where <study>.zarr goes (default results)")
     p.add_argument("--shard-rays", default="250", help="rays per tracing task (default 250)")
     p.add_argument("--dry-run", action="store_true", help="list each stage as cached or to compute")
+    p.add_argument("--report", default=None, help="also write a Markdown table of every study here")
     p.set_defaults(func=cmd_study)
 
 
@@ -284,9 +285,7 @@ def _study_client(args):
 
 
 def cmd_study(args) -> int:
-    import json
-
-    from .study.run import compute, describe_plan, plan_study, write_dataset
+    from .study.run import compute, describe_plan, plan_study, report_table, summary_rows, write_dataset
     from .study.spec import load_study
 
     shard_rays = _int(args.shard_rays, "shard_rays", 1)
@@ -317,11 +316,15 @@ def cmd_study(args) -> int:
         st = plan.study
         print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays, "
               f"{st.scenes[0].settings.method})")
-        for summ in plan.summaries:
-            row = json.loads(summ.path.read_text())
-            print(f"  {st.dimension}={st.coordinate()[summ.scene_index]}: "
-                  f"FWHM_R {row['fwhm_r_deg']:.2f}°, FWHM_L {row['fwhm_l_deg']:.2f}°, "
-                  f"haze {100 * row['haze']:.1f} %, {row['n_transmitted']}/{row['n_rays']} transmitted")
+        for row in summary_rows(plan):
+            print(f"  {st.dimension}={row['value']}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
+                  f"FWHM_L {row['fwhm_l_deg']:.2f}°, haze {100 * row['haze']:.1f} %, "
+                  f"{row['n_transmitted']}/{row['n_rays']} transmitted")
+    if args.report:
+        report = Path(args.report)
+        report.parent.mkdir(parents=True, exist_ok=True)
+        report.write_text(report_table(plans))
+        print(f"wrote {report}")
     print(f"{len(plans)} studies in {time.perf_counter() - t0:.1f} s")
     return 0
 

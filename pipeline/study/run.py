@@ -175,6 +175,11 @@ def _store(m: Micro) -> WoodChunkStore:
                           chunks=CHUNKS)
 
 
+def _slim(m: Micro) -> Micro:
+    """The wood of ``m`` without its chunk lists (what a task needs to open the store)."""
+    return Micro(m.key, m.path, m.scene)
+
+
 # ---------------------------------------------------------------------- tasks (run on workers)
 def generate_chunks(m: Micro, chunks: list) -> int:
     store = _store(m)
@@ -205,7 +210,7 @@ def trace_shard(m: Micro, scene: Scene, shard: Shard, *_after) -> str:
             np.savez(f, **arrays)
 
     _atomic_write(shard.path, write)
-    return str(shard.path)
+    return str(shard.path), store.generated
 
 
 def load_rays(paths, settings):
@@ -218,49 +223,70 @@ def load_rays(paths, settings):
     return RayResult(**cat, settings=settings), int(sum(p["chunks_generated"] for p in parts))
 
 
-def summarize_scene(scene: Scene, summ: Summary, shard_paths: list) -> dict:
+def summarize_scene(scene: Scene, summ: Summary, shards: list) -> dict:
+    """Reduce a scene's shards (cached paths, or (path, chunks generated) just traced)."""
     from ..analysis import summarize
 
-    result, generated = load_rays(shard_paths, scene.settings)
+    paths = [s if isinstance(s, str) else s[0] for s in shards]
+    result, generated = load_rays(paths, scene.settings)
     out = summarize(result, n_boot=N_BOOT, seed=scene.seed)
     out["chunks_generated"] = generated
     _atomic_write(summ.path, lambda tmp: tmp.write_text(json.dumps(out)))
-    return out
+    return {"summary": out, "chunks_generated": sum(s[1] for s in shards if not isinstance(s, str))}
 
 
 # ---------------------------------------------------------------------- graph
-def build_graph(plans: list[Plan]) -> list:
+@dataclass
+class Graph:
+    """The Dask tasks computing the missing stages of some plans."""
+
+    micro: list  # delayed chunk counts
+    summaries: list  # delayed {"summary": ..., "chunks_generated": ...}
+    n_trace: int
+
+
+def build_graph(plans: list[Plan]) -> Graph:
     """Dask delayed objects computing every missing stage of ``plans``."""
     import dask
 
-    tasks = []
+    # Task arguments enter the graph once each, by name, and untraversed: dask would
+    # otherwise walk every dataclass field of every argument of every task.
+    def constant(obj, name):
+        return dask.delayed(obj, name=name, traverse=False)
+
     micro_tasks: dict[str, list] = {}
+    micro_args: dict[str, object] = {}
     for plan in plans:
         for m in plan.micros.values():
             if m.key in micro_tasks:
                 continue
+            micro_args[m.key] = arg = constant(_slim(m), f"wood-{m.key[:12]}")
             micro_tasks[m.key] = [
                 dask.delayed(generate_chunks, pure=False)(
-                    m, m.todo[i:i + COLUMN_BATCH],
+                    arg, m.todo[i:i + COLUMN_BATCH],
                     dask_key_name=f"micro-{m.key[:12]}-{i // COLUMN_BATCH}")
                 for i in range(0, len(m.todo), COLUMN_BATCH)]
+    summaries = []
+    n_trace = 0
     for plan in plans:
         for summ in plan.summaries:
             if summ.cached:
                 continue
-            scene = plan.study.scenes[summ.scene_index]
+            scene = constant(plan.study.scenes[summ.scene_index], f"scene-{summ.key[:12]}")
             inputs = []
             for shard in plan.shards_of(summ):
                 if shard.cached:
                     inputs.append(str(shard.path))
                 else:
-                    m = plan.micros[shard.micro]
+                    n_trace += 1
                     inputs.append(dask.delayed(trace_shard, pure=False)(
-                        m, scene, shard, *micro_tasks[m.key],
-                        dask_key_name=f"rays-{shard.key[:12]}"))
-            tasks.append(dask.delayed(summarize_scene, pure=False)(
-                scene, summ, inputs, dask_key_name=f"summary-{summ.key[:12]}"))
-    return tasks
+                        micro_args[shard.micro], scene, constant(shard, f"shard-{shard.key[:12]}"),
+                        *micro_tasks[shard.micro], dask_key_name=f"rays-{shard.key[:12]}"))
+            summaries.append(dask.delayed(summarize_scene, pure=False)(
+                scene, constant(summ, f"summ-{summ.key[:12]}"), inputs,
+                dask_key_name=f"summary-{summ.key[:12]}"))
+    micro = [t for ts in micro_tasks.values() for t in ts]
+    return Graph(micro, summaries, n_trace)
 
 
 def describe_plan(plan: Plan) -> list[str]:
@@ -281,17 +307,51 @@ def describe_plan(plan: Plan) -> list[str]:
     return lines
 
 
-def compute(plans: list[Plan], client, *, progress: bool = False) -> None:
-    """Run the missing stages of ``plans`` on a ``distributed.Client``."""
-    tasks = build_graph(plans)
-    if not tasks:
-        return
-    futures = client.compute(tasks)
+def compute(plans: list[Plan], client, *, progress: bool = False) -> dict:
+    """Run the missing stages of ``plans`` on a ``distributed.Client``.
+
+    Returns counts of what ran: tasks per stage and wood chunks generated.
+    """
+    graph = build_graph(plans)
+    report = {"micro_tasks": len(graph.micro), "trace_tasks": graph.n_trace,
+              "summary_tasks": len(graph.summaries), "chunks_generated": 0}
+    if not graph.micro and not graph.summaries:
+        return report
+    futures = client.compute(graph.micro + graph.summaries)
     if progress:
         from distributed import progress as show
 
         show(futures)
-    client.gather(futures)
+    results = client.gather(futures)
+    n = len(graph.micro)
+    report["chunks_generated"] = int(sum(results[:n]) + sum(r["chunks_generated"] for r in results[n:]))
+    return report
+
+
+def summary_rows(plan: Plan) -> list[dict]:
+    """The cached summary of each value, with the value, in the study's order."""
+    coord = plan.study.coordinate()
+    return [{"value": coord[summ.scene_index], **json.loads(summ.path.read_text())}
+            for summ in plan.summaries]
+
+
+def report_table(plans: list[Plan]) -> str:
+    """A Markdown table of FWHM_R, FWHM_L and haze for every value of every study."""
+    lines = ["| study | parameter | value | FWHM_R (°) [95 % CI] | FWHM_L (°) [95 % CI] | haze (%) "
+             "| transmitted |", "|---|---|---|---|---|---|---|"]
+    for plan in plans:
+        st = plan.study
+        for row in summary_rows(plan):
+            r, lo = row["fwhm_r_ci_deg"], row["fwhm_l_ci_deg"]
+            lines.append(
+                f"| {st.name} | {st.dimension} | {row['value']} | {row['fwhm_r_deg']:.2f} "
+                f"[{r[0]:.2f}, {r[1]:.2f}] | {row['fwhm_l_deg']:.2f} [{lo[0]:.2f}, {lo[1]:.2f}] | "
+                f"{100 * row['haze']:.1f} | {row['n_transmitted']}/{row['n_rays']} |")
+    s0 = plans[0].study.scenes[0]
+    lines.append("")
+    lines.append(f"twray {__version__}, scale {plans[0].study.scale}, {s0.rays} rays, method "
+                 f"{s0.settings.method}, angles {s0.settings.exit}.")
+    return "\n".join(lines) + "\n"
 
 
 # ---------------------------------------------------------------------- dataset

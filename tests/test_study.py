@@ -1,0 +1,258 @@
+"""Studies: YAML schema, cached incremental Dask graphs on a real LocalCluster, Datasets."""
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from pipeline.cli import main
+from pipeline.microstructure.store import WoodChunkStore
+from pipeline.optics.sources import WoodSource
+from pipeline.params import ParameterError, build_params
+from pipeline.study.run import (_atomic_write, compute, plan_study, study_dataset, write_dataset)
+from pipeline.study.spec import load_study
+
+TABLE1 = Path(__file__).resolve().parent.parent / "studies" / "table1"
+
+# A quick study: at --scale small this is 40 rays through 30 µm of birch.
+TINY = """\
+title: tiny
+preset: birch
+seed: 3
+rays: 400
+beam_um: 100
+thickness_mm: 0.3
+delta_ri: 0.01
+trace: {method: fast}
+vary:
+  parameter: delta_ri
+  values: {values}
+"""
+
+
+def tiny(tmp_path, values, name="tiny.yaml"):
+    path = tmp_path / name
+    path.write_text(TINY.replace("{values}", json.dumps(values)))
+    return path
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as c:
+        yield c
+
+
+def run(path, cache, results, client, *, shard_rays=250):
+    study = load_study(path, scale="small")
+    plan = plan_study(study, cache, shard_rays=shard_rays)
+    report = compute([plan], client)
+    plan = plan_study(study, cache, shard_rays=shard_rays)
+    return write_dataset(plan, results), report, plan
+
+
+def stored_chunks(cache: Path) -> list:
+    return [p for p in (cache / "micro").rglob("*") if p.is_file() and p.parent.parent.parent.name == "c"]
+
+
+# ---------------------------------------------------------------------- schema
+def test_table1_files_expand_to_the_papers_values():
+    expected = {
+        "study-1": ("thickness", [0.25, 0.5, 0.75, 1.0, 1.25, 1.5]),
+        "study-2": ("delta_ri", [-0.03, -0.02, -0.01, 0.01, 0.02, 0.03]),
+        "study-3": ("fibre_diameter", [14.5, 29.0]),
+        "study-4": ("wall_thickness", [2.0, 4.0]),
+        "study-5-1": ("ray_cells", [True, False]),
+        "study-5-2": ("vessels", [True, False]),
+        "study-6": ("laminate", ["none", "0/-45/90/45/0"]),
+    }
+    for name, (dim, values) in expected.items():
+        st = load_study(TABLE1 / f"{name}.yaml")
+        assert (st.dimension, st.coordinate()) == (dim, values), name
+        assert all(s.rays == 1000 and s.voxel_um == 0.5 and s.beam_um == 150 for s in st.scenes)
+    s3 = load_study(TABLE1 / "study-3.yaml").scenes
+    assert not any(s.wood.vessels for s in s3)
+    s4 = load_study(TABLE1 / "study-4.yaml").scenes
+    assert all(s.wood.fibre_diameter_um == 29 for s in s4)
+    s6 = load_study(TABLE1 / "study-6.yaml").scenes
+    assert all(s.thickness_um == 500 for s in s6)
+    assert s6[1].wood.laminate == (0, -45, 90, 45, 0) and s6[1].wood.ply_thickness_um == 100
+    small = load_study(TABLE1 / "study-1.yaml", scale="small").scenes
+    assert [s.thickness_um for s in small] == pytest.approx([25, 50, 75, 100, 125, 150])
+    assert small[0].rays == 100
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("rayz: 10\n", "line 1: unknown key `rayz`"),
+    ("wood:\n  walls: 3\n", "line 2: unknown microstructure parameter `wood.walls`"),
+    ("trace:\n  method: quick\n", "line 2: `trace.method` must be one of paper, fast, accurate"),
+    ("rays: -4\n", "line 1: `rays` must be a positive integer"),
+    ("thickness_mm: thick\n", "line 1: `thickness_mm` must be a number"),
+    ("wood:\n  wall_thickness_um: 12\n", "`wall_thickness_um` must be < "),
+])
+def test_bad_study_files_name_file_line_and_field(tmp_path, text, needle, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text + "vary: {parameter: delta_ri, values: [0.01]}\n")
+    with pytest.raises(ParameterError, match="bad.yaml") as err:
+        load_study(path)
+    assert needle in str(err.value)
+    assert main(["study", str(path), "--cache", str(tmp_path / "c"), "--results", str(tmp_path / "r")]) == 2
+    msg = capsys.readouterr().err.strip()
+    assert msg.count("\n") == 0 and "bad.yaml" in msg
+    assert not (tmp_path / "c").exists() and not (tmp_path / "r").exists()
+
+
+def test_bad_varied_values_are_refused(tmp_path):
+    path = tmp_path / "v.yaml"
+    path.write_text("vary:\n  parameter: vessels\n  values: [yes_please]\n")
+    with pytest.raises(ParameterError, match=r"v.yaml line 3: `vary.values`: `vessels` must be true or false"):
+        load_study(path)
+    path.write_text("vary:\n  parameter: colour\n  values: [1]\n")
+    with pytest.raises(ParameterError, match=r"line 2: `vary.parameter` must be one of"):
+        load_study(path)
+    path.write_text("vary:\n  parameter: delta_ri\n  values: [0.01, 0.01]\n")
+    with pytest.raises(ParameterError, match="must not repeat"):
+        load_study(path)
+
+
+# ---------------------------------------------------------------------- wood chunk store
+def test_stored_chunks_equal_generated_ones_whatever_the_thickness(tmp_path):
+    params = build_params("birch")
+    store = WoodChunkStore(tmp_path / "w.zarr", params, seed=5, voxel_um=0.5)
+    plain = WoodSource(params, thickness_um=40.0, seed=5)  # 80 voxels: chunk T=1 is cut
+    cached = WoodSource(params, thickness_um=40.0, seed=5, store=store)
+    for idx in [(0, 0, 0), (-2, 1, 3), (1, 1, -1)]:
+        assert np.array_equal(cached.get(idx), plain.get(idx))
+    assert store.generated == 3 and store.stored((-2, 1, 3))
+    reread = WoodChunkStore(tmp_path / "w.zarr", params, seed=5, voxel_um=0.5)
+    thick = WoodSource(params, thickness_um=100.0, seed=5, store=reread)
+    assert np.array_equal(thick.get((-2, 1, 3)), WoodSource(params, thickness_um=100.0, seed=5).get((-2, 1, 3)))
+    assert reread.generated == 0  # a thicker sample of the same wood reuses the chunk
+
+
+def test_a_failed_cache_write_leaves_no_entry(tmp_path):
+    target = tmp_path / "rays" / "x.npz"
+
+    def crash(tmp):
+        tmp.write_bytes(b"half an entry")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError):
+        _atomic_write(target, crash)
+    assert list((tmp_path / "rays").iterdir()) == []
+
+
+# ---------------------------------------------------------------------- pipeline on a LocalCluster
+def test_study_2_small_gives_six_finite_values_from_one_microstructure(tmp_path, client):
+    cache = tmp_path / "cache"
+    out, report, plan = run(TABLE1 / "study-2.yaml", cache, tmp_path / "results", client)
+    assert out == tmp_path / "results" / "study-2.zarr"
+    ds = xr.open_zarr(out, consolidated=False).load()
+    assert ds.sizes == {"delta_ri": 6, "ray": 100}
+    for name in ("FWHM_R", "FWHM_L", "haze", "FWHM_R_ci_lower", "FWHM_R_ci_upper",
+                 "FWHM_L_ci_lower", "FWHM_L_ci_upper", "n_transmitted", "n_lost"):
+        assert np.all(np.isfinite(ds[name].values)), name
+    assert list(ds.delta_ri.values) == [-0.03, -0.02, -0.01, 0.01, 0.02, 0.03]
+    assert ds.delta_ri.attrs["units"] == "1" and ds.FWHM_R.attrs["units"] == "degree"
+    assert ds.haze.attrs["units"] == "1"
+    assert np.all(ds.FWHM_R_ci_lower <= ds.FWHM_R) and np.all(ds.FWHM_R <= ds.FWHM_R_ci_upper)
+    assert np.all(ds.n_transmitted + ds.n_lost == 100)
+    # The scattering grows with |ΔRI| and is (nearly) even in its sign.
+    f = ds.FWHM_R.values
+    assert f[0] > f[2] and f[5] > f[3]
+    assert ds.attrs["study_yaml"] == (TABLE1 / "study-2.yaml").read_text()
+    assert ds.attrs["source"].startswith("twray ") and ds.attrs["seed"] == 1
+    assert json.loads(ds.attrs["trace_settings"])["method"] == "accurate"
+    keys = json.loads(ds.attrs["cache_keys"])
+    # One microstructure for the six values, generated once: every chunk on disk was
+    # generated exactly one time (one worker process, two threads).
+    assert len({k["micro"] for k in keys}) == 1
+    assert len(list((cache / "micro").iterdir())) == 1
+    assert report["chunks_generated"] == len(stored_chunks(cache)) > 0
+    assert report["trace_tasks"] == 6 and report["summary_tasks"] == 6
+    # The per-ray angles are there for re-analysis and agree with the fits' inputs.
+    t = ds.status.values == 1
+    assert np.all(np.isfinite(ds.theta_r.values[t]))
+
+
+def test_unchanged_rerun_computes_nothing_and_a_new_value_traces_only_itself(tmp_path, capsys):
+    study = tiny(tmp_path, [0.01, 0.03])
+    args = ["study", str(study), "--scale", "small", "--cache", str(tmp_path / "c"),
+            "--results", str(tmp_path / "r"), "--workers", "1"]
+    t0 = time.perf_counter()
+    assert main(args) == 0
+    cold = time.perf_counter() - t0
+    out = tmp_path / "r" / "tiny.zarr"
+    stamp = os.stat(out / "zarr.json").st_mtime_ns
+    entries = {p: p.stat().st_mtime_ns for p in (tmp_path / "c").rglob("*") if p.is_file()}
+    t0 = time.perf_counter()
+    assert main(args) == 0
+    warm = time.perf_counter() - t0
+    assert cold / warm >= 20, (cold, warm)
+    assert os.stat(out / "zarr.json").st_mtime_ns == stamp
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "c").rglob("*") if p.is_file()} == entries
+    capsys.readouterr()
+    assert main(args + ["--dry-run"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2 and all("1/1 shards cached; summary cached" in ln for ln in lines)
+
+    # Add a value: only it is traced; the wood and the other value are reused.
+    tiny(tmp_path, [0.01, 0.02, 0.03])
+    st = load_study(study, scale="small")
+    plan = plan_study(st, tmp_path / "c")
+    assert [s.cached for s in plan.summaries] == [True, False, True]
+    assert [s.cached for s in plan.shards] == [True, False, True]
+    assert main(args + ["--dry-run"]) == 0
+    assert "delta_ri=0.02: micro" in capsys.readouterr().out
+    assert main(args) == 0
+    for p, t in entries.items():
+        assert p.stat().st_mtime_ns == t, p  # nothing recomputed or rewritten
+    ds = xr.open_zarr(out, consolidated=False)
+    assert list(ds.delta_ri.values) == [0.01, 0.02, 0.03]
+    assert np.all(np.isfinite(ds.FWHM_R.values))
+
+
+def test_same_numbers_with_one_or_two_workers_and_any_shard_size(tmp_path):
+    from distributed import Client, LocalCluster
+
+    study = tiny(tmp_path, [-0.02, 0.02])
+    sets = []
+    for workers, shard in [(1, 40), (2, 7)]:
+        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                          dashboard_address=None) as cluster, Client(cluster) as c:
+            out, _, _ = run(study, tmp_path / f"c{workers}", tmp_path / f"r{workers}", c, shard_rays=shard)
+        sets.append(xr.open_zarr(out, consolidated=False).load())
+    a, b = sets
+    for name in ("theta_r", "theta_l", "status", "n_interfaces", "FWHM_R", "FWHM_L", "haze",
+                 "FWHM_R_ci_lower", "FWHM_L_ci_upper"):
+        assert np.array_equal(a[name].values, b[name].values), name
+    assert a.attrs["cache_keys"] != b.attrs["cache_keys"]  # different shards, same numbers
+
+
+def test_a_study_equals_the_trace_command_for_the_same_scene(tmp_path, client, capsys):
+    study = tiny(tmp_path, [0.02])
+    out, _, _ = run(study, tmp_path / "c", tmp_path / "r", client)
+    ds = xr.open_zarr(out, consolidated=False)
+    assert main(["trace", "--preset", "birch", "--thickness-mm", "0.03", "--delta-ri", "0.02",
+                 "--rays", "40", "--beam-um", "25", "--method", "fast", "--seed", "3", "--json"]) == 0
+    cli = json.loads(capsys.readouterr().out)
+    assert cli["fwhm_r_deg"] == float(ds.FWHM_R[0]) and cli["haze"] == float(ds.haze[0])
+
+
+def test_dataset_coordinates_for_booleans_and_laminates(tmp_path, client):
+    path = tmp_path / "lam.yaml"
+    path.write_text("rays: 200\nbeam_um: 60\nthickness_mm: 0.2\ntrace: {method: fast}\n"
+                    "vary:\n  parameter: laminate\n  values: [none, '[0/90]']\n")
+    out, _, plan = run(path, tmp_path / "c", tmp_path / "r", client)
+    ds = xr.open_zarr(out, consolidated=False)
+    assert list(ds.laminate.values) == ["none", "0/90"]
+    assert plan.study.scenes[1].wood.ply_thickness_um == 10.0  # two equal plies in 20 µm
+    assert len(plan.micros) == 2
+    ds2 = study_dataset(plan)
+    assert ds2.laminate.attrs["units"] == "degree"
