@@ -88,6 +88,21 @@ def test_table1_files_expand_to_the_papers_values():
     assert small[0].rays == 100
 
 
+def test_studies_share_the_wood_and_scenes_they_have_in_common(tmp_path):
+    plans = {n: plan_study(load_study(TABLE1 / f"{n}.yaml", scale="small"), tmp_path)
+             for n in ("study-1", "study-2", "study-3", "study-5-1", "study-5-2", "study-6")}
+    base = set(plans["study-1"].micros)
+    assert len(base) == 1  # every thickness reads the same wood
+    assert set(plans["study-2"].micros) == base  # and so does every ΔRI
+    assert [s.micro for s in plans["study-2"].shards] == [s.micro for s in plans["study-2"].shards[:1]] * 6
+    # The base scene (1 mm, ΔRI 0.01, birch) is one cache entry in studies 1, 2 and 5-1.
+    key = {n: [s.key for s in plans[n].summaries] for n in plans}
+    assert key["study-1"][3] == key["study-2"][3] == key["study-5-1"][0] == key["study-5-2"][0]
+    assert key["study-5-2"][1] == key["study-3"][0]  # no vessels at 14.5 µm
+    assert key["study-6"][0] == key["study-1"][1]  # 0.5 mm of birch
+    assert key["study-5-1"][1] not in key["study-2"]
+
+
 @pytest.mark.parametrize("text, needle", [
     ("rayz: 10\n", "line 1: unknown key `rayz`"),
     ("wood:\n  walls: 3\n", "line 2: unknown microstructure parameter `wood.walls`"),

@@ -254,18 +254,22 @@ def build_graph(plans: list[Plan]) -> Graph:
     def constant(obj, name):
         return dask.delayed(obj, name=name, traverse=False)
 
-    micro_tasks: dict[str, list] = {}
-    micro_args: dict[str, object] = {}
+    # Studies that share a wood (say study 1 and study 2) share its chunk tasks.
+    todo: dict[str, set] = {}
+    woods: dict[str, Micro] = {}
     for plan in plans:
         for m in plan.micros.values():
-            if m.key in micro_tasks:
-                continue
-            micro_args[m.key] = arg = constant(_slim(m), f"wood-{m.key[:12]}")
-            micro_tasks[m.key] = [
-                dask.delayed(generate_chunks, pure=False)(
-                    arg, m.todo[i:i + COLUMN_BATCH],
-                    dask_key_name=f"micro-{m.key[:12]}-{i // COLUMN_BATCH}")
-                for i in range(0, len(m.todo), COLUMN_BATCH)]
+            todo.setdefault(m.key, set()).update(m.todo)
+            woods.setdefault(m.key, m)
+    micro_tasks: dict[str, list] = {}
+    micro_args: dict[str, object] = {}
+    for key, m in woods.items():
+        chunks = sorted(todo[key])
+        micro_args[key] = arg = constant(_slim(m), f"wood-{key[:12]}")
+        micro_tasks[key] = [
+            dask.delayed(generate_chunks, pure=False)(
+                arg, chunks[i:i + COLUMN_BATCH], dask_key_name=f"micro-{key[:12]}-{i // COLUMN_BATCH}")
+            for i in range(0, len(chunks), COLUMN_BATCH)]
     summaries = []
     n_trace = 0
     for plan in plans:
