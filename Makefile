@@ -9,7 +9,7 @@ SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
-.PHONY: install demo test bench bench-generate bench-trace clean table1 $(STUDIES)
+.PHONY: install demo test bench bench-generate bench-trace bench-study clean table1 $(STUDIES)
 
 install: $(STAMP)
 
@@ -36,7 +36,7 @@ demo: install
 test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-bench: bench-generate bench-trace
+bench: bench-generate bench-trace bench-study
 
 bench-generate: install
 	$(BIN)/python benchmarks/bench_generate.py --out results/bench.json
@@ -46,3 +46,6 @@ clean:
 
 bench-trace: install
 	$(BIN)/python benchmarks/bench_trace.py --out results/bench.json
+
+bench-study: install
+	$(BIN)/python benchmarks/bench_study.py --out results/bench.json

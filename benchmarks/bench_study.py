@@ -1,0 +1,83 @@
+"""Table 1 as a study graph: cold and warm wall time, and where a paper-scale scene spends it.
+
+Writes the "study" section of results/bench.json:
+- table1_small: every Table 1 study at --scale small in a fresh cache, then
+  again unchanged (the warm run computes nothing), as one ``twray study`` call;
+- paper_scene: a slice of one paper-scale scene (1 mm of birch, ΔRI = 0.03,
+  accurate), traced in this process, split into wood generation and tracing,
+  with the wood chunks it needed per ray.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from _bench_json import write_section
+
+from pipeline.microstructure.store import WoodChunkStore
+from pipeline.optics.sources import WoodSource
+from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
+from pipeline.params import build_params
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def table1_small(tmp: Path) -> dict:
+    files = sorted(str(p) for p in (ROOT / "studies" / "table1").glob("*.yaml"))
+    cmd = [sys.executable, "-m", "pipeline", "study", *files, "--scale", "small",
+           "--cache", str(tmp / "cache"), "--results", str(tmp / "results")]
+    out = {}
+    for run in ("cold", "warm"):
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True)
+        out[f"{run}_s"] = round(time.perf_counter() - t0, 2)
+    out["cold_over_warm"] = round(out["cold_s"] / out["warm_s"], 1)
+    return out
+
+
+def paper_scene(tmp: Path, n_rays: int) -> dict:
+    params = build_params("birch")
+    store = WoodChunkStore(tmp / "wood.zarr", params, seed=1, voxel_um=0.5)
+    spent = [0.0]
+    get = store.get
+
+    def timed(idx):
+        t = time.perf_counter()
+        data = get(idx)
+        spent[0] += time.perf_counter() - t
+        return data
+
+    store.get = timed
+    source = WoodSource(params, thickness_um=1000.0, voxel_um=0.5, seed=1, store=store)
+    beam = square_beam(1000, 300, (0.0, 0.0), seed=1)
+    part = Beam(beam.origins[:n_rays], beam.direction, beam.ray_ids[:n_rays])
+    t0 = time.perf_counter()
+    r = trace_beam(source, part, n_wall=1.52, n_poly=1.49, settings=settings_for("accurate"), seed=1)
+    total = time.perf_counter() - t0
+    return {"rays": n_rays, "seconds": round(total, 1), "wood_seconds": round(spent[0], 1),
+            "chunks_generated": store.generated, "chunks_per_ray": round(store.generated / n_rays, 1),
+            "voxels_per_ray": round(store.generated * 64**3 / n_rays),
+            "interfaces_per_ray": round(float(r.events.mean()), 1),
+            "us_per_interface_tracing": round((total - spent[0]) / r.events.sum() * 1e6, 1)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="results/bench.json")
+    ap.add_argument("--rays", type=int, default=50, help="rays of the paper-scale slice")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        result = {"table1_small": table1_small(Path(tmp)),
+                  "paper_scene": paper_scene(Path(tmp), args.rays),
+                  "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
+    write_section(args.out, "study", result)
+
+
+if __name__ == "__main__":
+    main()
