@@ -482,10 +482,24 @@ def _request_neighbourhood(pool, table, box, cs, shape, x, d, radius, request, r
             b = min(max(b, 0), shape[q] - 1)
         lo[q] = a
         hi[q] = b
-    for i in (lo[0], hi[0]):
-        for j in (lo[1], hi[1]):
-            for k in (lo[2], hi[2]):
+    # Steps of one chunk from lo to hi (and hi itself) meet every chunk the box
+    # spans, also when the window is wider than two chunks.
+    i = lo[0]
+    while True:
+        j = lo[1]
+        while True:
+            k = lo[2]
+            while True:
                 if voxel_at(pool, table, box, cs, i, j, k) == MISSING:
                     _pause_for_chunk(request, r, cs, i, j, k)
                     return True
+                if k == hi[2]:
+                    break
+                k = min(k + cs[2], hi[2])
+            if j == hi[1]:
+                break
+            j = min(j + cs[1], hi[1])
+        if i == hi[0]:
+            break
+        i = min(i + cs[0], hi[0])
     return False

@@ -216,7 +216,9 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
             # near chunk borders would evict each other's chunks forever.
             live = np.floor(pos[status >= K.NEEDS_CHUNK]).astype(np.int64)
             keep = set()
-            for corner in np.array(np.meshgrid([-reach, reach], [-reach, reach], [-reach, reach])).T.reshape(-1, 3):
+            # Offsets one chunk apart from -reach to reach meet every chunk of the window.
+            steps = [sorted(set(range(-reach, reach, int(c))) | {reach}) for c in cs]
+            for corner in np.array(np.meshgrid(*steps)).T.reshape(-1, 3):
                 c = (live + corner) // cs
                 keep.update(map(tuple, c[c[:, 1] >= 0]))
             cache.require(map(tuple, request[waiting]), keep=keep)
