@@ -5,7 +5,7 @@ Writes the "study" section of results/bench.json:
   again unchanged (the warm run computes nothing), as one ``twray study`` call;
 - paper_scene: a slice of one paper-scale scene (1 mm of birch, ΔRI = 0.03,
   accurate), traced in this process, split into wood generation and tracing,
-  with the wood chunks (of the study's chunk shape) it needed per ray.
+  with the wood chunks it needed per ray.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from pipeline.microstructure.store import WoodChunkStore
 from pipeline.optics.sources import WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
 from pipeline.params import build_params
-from pipeline.study.run import CHUNKS, POOL_CHUNKS
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,7 +43,7 @@ def table1_small(tmp: Path) -> dict:
 
 def paper_scene(tmp: Path, n_rays: int) -> dict:
     params = build_params("birch")
-    store = WoodChunkStore(tmp / "wood.zarr", params, seed=1, voxel_um=0.5, chunks=CHUNKS)
+    store = WoodChunkStore(tmp / "wood.zarr", params, seed=1, voxel_um=0.5)
     spent = [0.0]
     get = store.get
 
@@ -59,13 +58,11 @@ def paper_scene(tmp: Path, n_rays: int) -> dict:
     beam = square_beam(1000, 300, (0.0, 0.0), seed=1)
     part = Beam(beam.origins[:n_rays], beam.direction, beam.ray_ids[:n_rays])
     t0 = time.perf_counter()
-    r = trace_beam(source, part, n_wall=1.52, n_poly=1.49, settings=settings_for("accurate"), seed=1,
-                   capacity=POOL_CHUNKS)
+    r = trace_beam(source, part, n_wall=1.52, n_poly=1.49, settings=settings_for("accurate"), seed=1)
     total = time.perf_counter() - t0
     return {"rays": n_rays, "seconds": round(total, 1), "wood_seconds": round(spent[0], 1),
             "chunks_generated": store.generated, "chunks_per_ray": round(store.generated / n_rays, 1),
-            "chunk_shape": list(CHUNKS),
-            "voxels_per_ray": round(store.generated * CHUNKS[0] * CHUNKS[1] * CHUNKS[2] / n_rays),
+            "voxels_per_ray": round(store.generated * 64**3 / n_rays),
             "interfaces_per_ray": round(float(r.events.mean()), 1),
             "us_per_interface_tracing": round((total - spent[0]) / r.events.sum() * 1e6, 1)}
 

@@ -36,7 +36,7 @@ from .volume import ARRAY, AXES, NOT_GENERATED, _ome_attrs, staged_path
 
 OFFSET = 160  # chunks held on disk on each side of the origin along R and L
 T_CHUNKS = 256  # chunks held on disk along T (8 mm with 64-voxel chunks of 0.5 µm)
-MEMORY_BYTES = 6 << 30  # process-wide budget of the in-memory LRU (24k chunks of 64³, 196k of 32³)
+MEMORY_BYTES = 6 << 30  # process-wide budget of the in-memory LRU (24k chunks of 64³)
 
 _memory: OrderedDict = OrderedDict()
 _memory_bytes = 0
