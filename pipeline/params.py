@@ -213,7 +213,8 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
 
 
-def _read_yaml(path: Path, what: str) -> dict[str, Any]:
+def read_yaml_file(path: Path, what: str) -> tuple[str, dict[str, Any]]:
+    """The text of a YAML file and its top-level mapping; errors name the file and line."""
     try:
         text = path.read_text()
     except OSError as exc:
@@ -225,10 +226,14 @@ def _read_yaml(path: Path, what: str) -> dict[str, Any]:
         line = f" line {mark.line + 1}" if mark else ""
         raise ParameterError(f"{path}{line}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
     if data is None:
-        return {}
+        return text, {}
     if not isinstance(data, dict):
-        raise ParameterError(f"{path}: must be a mapping of parameter: value, got {type(data).__name__}")
-    return data
+        raise ParameterError(f"{path}: must be a mapping of key: value, got {type(data).__name__}")
+    return text, data
+
+
+def _read_yaml(path: Path, what: str) -> dict[str, Any]:
+    return read_yaml_file(path, what)[1]
 
 
 def _key_lines(path: Path) -> dict[str, int]:

@@ -374,46 +374,36 @@ def study_dataset(plan: Plan):
         result, _ = load_rays(paths, scene.settings)
         rows.append((json.loads(summ.path.read_text()), result))
     codes = sorted(STATUS_NAMES)
-
-    def var(name, long_name, units, dims=(dim,), **extra):
-        values = np.array([extract(name, s, r) for s, r in rows])
-        return (dims, values, {"long_name": long_name, "units": units, **extra}) if units else \
-            (dims, values, {"long_name": long_name, **extra})
-
-    def extract(name, s, r):
-        return {
-            "FWHM_R": lambda: s["fwhm_r_deg"], "FWHM_L": lambda: s["fwhm_l_deg"],
-            "FWHM_R_ci_lower": lambda: s["fwhm_r_ci_deg"][0], "FWHM_R_ci_upper": lambda: s["fwhm_r_ci_deg"][1],
-            "FWHM_L_ci_lower": lambda: s["fwhm_l_ci_deg"][0], "FWHM_L_ci_upper": lambda: s["fwhm_l_ci_deg"][1],
-            "haze": lambda: s["haze"], "n_transmitted": lambda: s["n_transmitted"],
-            "n_lost": lambda: s["n_lost"], "interfaces_per_ray": lambda: s["interfaces_per_ray"],
-            "theta_r": lambda: r.theta_r, "theta_l": lambda: r.theta_l,
-            "status": lambda: r.status.astype("int32"),
-            "n_interfaces": lambda: r.events.astype("int32"),
-        }[name]()
-
+    per_scene = {  # name: (value of a summary, long_name, units)
+        "FWHM_R": (lambda s: s["fwhm_r_deg"], "FWHM of the Lorentz fit to theta_R", "degree"),
+        "FWHM_L": (lambda s: s["fwhm_l_deg"], "FWHM of the Lorentz fit to theta_L", "degree"),
+        "haze": (lambda s: s["haze"], "fraction of transmitted rays deviating more than 2.5 degree", "1"),
+        "FWHM_R_ci_lower": (lambda s: s["fwhm_r_ci_deg"][0], "bootstrap 95 % interval of FWHM_R, lower", "degree"),
+        "FWHM_R_ci_upper": (lambda s: s["fwhm_r_ci_deg"][1], "bootstrap 95 % interval of FWHM_R, upper", "degree"),
+        "FWHM_L_ci_lower": (lambda s: s["fwhm_l_ci_deg"][0], "bootstrap 95 % interval of FWHM_L, lower", "degree"),
+        "FWHM_L_ci_upper": (lambda s: s["fwhm_l_ci_deg"][1], "bootstrap 95 % interval of FWHM_L, upper", "degree"),
+        "n_transmitted": (lambda s: s["n_transmitted"], "rays leaving through the far L-R face", "1"),
+        "n_lost": (lambda s: s["n_lost"], "rays not transmitted (reflected, side, trapped)", "1"),
+        "interfaces_per_ray": (lambda s: s["interfaces_per_ray"], "mean interfaces met per ray", "1"),
+    }
+    per_ray = {  # name: (values of a RayResult, attributes)
+        "theta_r": (lambda r: r.theta_r, {"long_name": "exit angle in the R-T plane from +T", "units": "degree"}),
+        "theta_l": (lambda r: r.theta_l, {"long_name": "exit angle in the L-T plane from +T", "units": "degree"}),
+        "n_interfaces": (lambda r: r.events.astype("int32"), {"long_name": "interfaces met by the ray", "units": "1"}),
+        "status": (lambda r: r.status.astype("int32"), {
+            "long_name": "ray status", "flag_values": codes,
+            "flag_meanings": " ".join(STATUS_NAMES[c] for c in codes)}),
+    }
+    data = {name: (dim, np.array([get(s) for s, _ in rows]), {"long_name": ln, "units": u})
+            for name, (get, ln, u) in per_scene.items()}
+    data.update({name: ((dim, "ray"), np.array([get(r) for _, r in rows]), attrs)
+                 for name, (get, attrs) in per_ray.items()})
     coord = st.coordinate()
     if any(isinstance(c, str) for c in coord):
         coord = np.array(coord, dtype=object)  # variable-length strings (laminate notation)
     n_rays = len(rows[0][1].status)
     ds = xr.Dataset(
-        {
-            "FWHM_R": var("FWHM_R", "FWHM of the Lorentz fit to theta_R", "degree"),
-            "FWHM_L": var("FWHM_L", "FWHM of the Lorentz fit to theta_L", "degree"),
-            "haze": var("haze", "fraction of transmitted rays deviating more than 2.5 degree", "1"),
-            "FWHM_R_ci_lower": var("FWHM_R_ci_lower", "bootstrap 95 % interval of FWHM_R, lower", "degree"),
-            "FWHM_R_ci_upper": var("FWHM_R_ci_upper", "bootstrap 95 % interval of FWHM_R, upper", "degree"),
-            "FWHM_L_ci_lower": var("FWHM_L_ci_lower", "bootstrap 95 % interval of FWHM_L, lower", "degree"),
-            "FWHM_L_ci_upper": var("FWHM_L_ci_upper", "bootstrap 95 % interval of FWHM_L, upper", "degree"),
-            "n_transmitted": var("n_transmitted", "rays leaving through the far L-R face", "1"),
-            "n_lost": var("n_lost", "rays not transmitted (reflected, side, trapped)", "1"),
-            "interfaces_per_ray": var("interfaces_per_ray", "mean interfaces met per ray", "1"),
-            "theta_r": var("theta_r", "exit angle in the R-T plane from +T", "degree", (dim, "ray")),
-            "theta_l": var("theta_l", "exit angle in the L-T plane from +T", "degree", (dim, "ray")),
-            "n_interfaces": var("n_interfaces", "interfaces met by the ray", "1", (dim, "ray")),
-            "status": var("status", "ray status", None, (dim, "ray"), flag_values=codes,
-                          flag_meanings=" ".join(STATUS_NAMES[c] for c in codes)),
-        },
+        data,
         coords={
             dim: (dim, coord, {"long_name": st.long_name, **({"units": st.units} if st.units else {})}),
             "ray": ("ray", np.arange(n_rays), {"long_name": "ray index in the beam"}),

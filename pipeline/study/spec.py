@@ -32,7 +32,8 @@ from typing import Any
 import yaml
 
 from ..optics.tracer import PRESETS, TraceSettings, settings_for
-from ..params import ParameterError, WoodParams, WOOD_FIELDS, coerce_field, load_preset, validate
+from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, load_preset,
+                      read_yaml_file, validate)
 
 # What each scale does to the paper-scale numbers of a study file.
 SCALES = {
@@ -113,19 +114,8 @@ def load_study(path, *, scale: str = "paper") -> Study:
     path = Path(path)
     if scale not in SCALES:
         raise ParameterError(f"`scale` must be one of {', '.join(SCALES)}, got scale={scale!r}")
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ParameterError(f"cannot read study {str(path)!r}: {exc.strerror}") from None
-    try:
-        data = yaml.safe_load(text)
-        lines = _lines(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark else ""
-        raise ParameterError(f"{path}{line}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
-    if not isinstance(data, dict):
-        raise ParameterError(f"{path}: a study must be a mapping of key: value")
+    text, data = read_yaml_file(path, "study")
+    lines = _lines(text)
 
     def where(*keys) -> str:
         return f"{path} line {lines.get(tuple(keys), lines.get(keys[:1], '?'))}: "
