@@ -329,6 +329,62 @@ def cmd_study(args) -> int:
     return 0
 
 
+def _add_camera(sub):
+    p = sub.add_parser("camera", help="render images through a TW sheet with a thin-lens camera")
+    p.add_argument("file", metavar="FILE.yaml", help="camera file, e.g. studies/camera/figure5.yaml")
+    p.add_argument("--scale", default="paper", help="paper (the file's numbers) or small (quick)")
+    p.add_argument("--workers", default=None, help="local worker processes (default 1, using every core)")
+    p.add_argument("--threads", default=None, help="threads per local worker (default: cores / workers)")
+    p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
+    p.add_argument("--scheduler-file", default=None, help="scheduler file of a running Dask cluster")
+    p.add_argument("--cache", default="results/cache", help="cache directory (default results/cache)")
+    p.add_argument("--results", default="results/camera",
+                   help="where the Dataset and PNGs go (default results/camera)")
+    p.add_argument("--rows-per-task", default="3", help="sensor rows per rendering task (default 3)")
+    p.add_argument("--dry-run", action="store_true", help="list each image as cached or to render")
+    p.set_defaults(func=cmd_camera)
+
+
+def cmd_camera(args) -> int:
+    from .camera.run import compute, load_entry, plan_camera, write_outputs
+    from .camera.scene import load_camera
+
+    rows = _int(args.rows_per_task, "rows_per_task", 1)
+    if args.workers is not None:
+        _int(args.workers, "workers", 1)
+    study = load_camera(args.file, scale=args.scale)
+    t0 = time.perf_counter()
+    entries = plan_camera(study, args.cache)
+    if args.dry_run:
+        for e in entries:
+            print(f"{study.name} {e.config.name}: {'cached' if e.cached else 'to render'} ({e.key[:12]})")
+        return 0
+    if not all(e.cached for e in entries):
+        client, cluster = _study_client(args)
+        try:
+            print(f"twray camera: dashboard {client.dashboard_link}", file=sys.stderr)
+            compute(entries, client, args.cache, rows_per_task=rows, progress=sys.stdout.isatty())
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+        entries = plan_camera(study, args.cache)
+    paths = write_outputs(study, entries, args.results)
+    print(f"{paths[0]}: {study.title} (scale {study.scale}, {study.images[0].camera.samples} "
+          f"samples per pixel, {study.images[0].settings.method})")
+    for e in entries:
+        d = load_entry(e)
+        c = e.config
+        n = d["image"].size * c.camera.samples
+        print(f"  {c.name}: f {c.camera.focal_mm:g} mm, m {c.camera.magnification:.4g}, "
+              + ("no sheet" if c.sheet is None else
+                 f"ΔRI {c.sheet.ri_wall - c.sheet.ri_polymer:.3g}, gap {c.sheet.gap_um:g} µm, "
+                 f"{float(d['interfaces_per_ray']):.1f} interfaces/ray")
+              + f", {int(d['lost'].sum())}/{n} samples lost")
+    print(f"wrote {len(paths)} files under {Path(args.results)} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
 def cmd_slices(args) -> int:
     from .microstructure.export import write_slices
     from .microstructure.volume import WoodVolume
@@ -361,6 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_generate(sub)
     _add_trace(sub)
     _add_study(sub)
+    _add_camera(sub)
     p = sub.add_parser("slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
     p.add_argument("volume")
     p.add_argument("--out", required=True, help="output directory")

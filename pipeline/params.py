@@ -236,14 +236,23 @@ def _read_yaml(path: Path, what: str) -> dict[str, Any]:
     return read_yaml_file(path, what)[1]
 
 
+def key_lines(text: str) -> dict[tuple, int]:
+    """Line numbers of the keys of a YAML document at every depth, as key paths."""
+    out: dict[tuple, int] = {}
+
+    def walk(node, prefix):
+        if isinstance(node, yaml.MappingNode):
+            for k, v in node.value:
+                out[prefix + (str(k.value),)] = k.start_mark.line + 1
+                walk(v, prefix + (str(k.value),))
+
+    walk(yaml.compose(text), ())
+    return out
+
+
 def _key_lines(path: Path) -> dict[str, int]:
     """Line numbers of the top-level keys of a YAML file, for error messages."""
-    lines: dict[str, int] = {}
-    node = yaml.compose(path.read_text())
-    if isinstance(node, yaml.MappingNode):
-        for k, _ in node.value:
-            lines[str(k.value)] = k.start_mark.line + 1
-    return lines
+    return {k[0]: v for k, v in key_lines(path.read_text()).items() if len(k) == 1}
 
 
 def _apply(base: dict[str, Any], updates: dict[str, Any], where_of) -> None:

@@ -158,57 +158,60 @@ def smoothed_wall(pool, table, box, cs, shape, x, sigma, radius, grad):
     gy = 0.0
     gz = 0.0
     ssum = 0.0
-    # Usually the whole window lies in one resident chunk: read the pool directly.
-    slot = -1
-    ci, cj, ck = chunk_of(cs, i0, j0, k0)
-    if (ci == (i0 + n - 1) // cs[0] and cj == (j0 + n - 1) // cs[1] and ck == (k0 + n - 1) // cs[2]
-            and j0 >= 0 and j0 + n <= shape[1]
-            and (shape[0] == 0 or (i0 >= 0 and i0 + n <= shape[0]))
-            and (shape[2] == 0 or (k0 >= 0 and k0 + n <= shape[2]))):
-        a_ = ci - box[0]
-        b_ = cj - box[1]
-        c_ = ck - box[2]
-        if (0 <= a_ < table.shape[0] and 0 <= b_ < table.shape[1] and 0 <= c_ < table.shape[2]):
-            slot = table[a_, b_, c_]
-    if slot >= 0:
-        oi = i0 - ci * cs[0]
-        oj = j0 - cj * cs[1]
-        ok = k0 - ck * cs[2]
-        for c in range(n):
-            if wz[c] == 0.0:
+    # Voxel indices of the window along each axis (clamped where the volume
+    # ends), split into chunk index and offset.  Each row of the sum reads a
+    # few runs of voxels (one per chunk it crosses, usually one) from the
+    # pool, and the chunk table is consulted once per run.
+    ci = np.empty(n, np.int64)
+    oi = np.empty(n, np.int64)
+    cj = np.empty(n, np.int64)
+    oj = np.empty(n, np.int64)
+    ck = np.empty(n, np.int64)
+    ok = np.empty(n, np.int64)
+    for q in range(n):
+        i = min(max(i0 + q, 0), shape[0] - 1) if shape[0] > 0 else i0 + q
+        j = min(max(j0 + q, 0), shape[1] - 1)
+        k = min(max(k0 + q, 0), shape[2] - 1) if shape[2] > 0 else k0 + q
+        ci[q] = i // cs[0]
+        oi[q] = i - ci[q] * cs[0]
+        cj[q] = j // cs[1]
+        oj[q] = j - cj[q] * cs[1]
+        ck[q] = k // cs[2]
+        ok[q] = k - ck[q] * cs[2]
+    run_end = np.empty(n, np.int64)  # end of the run of equal chunk index along R
+    run_end[n - 1] = n
+    for q in range(n - 2, -1, -1):
+        run_end[q] = run_end[q + 1] if ci[q + 1] == ci[q] else q + 1
+    for c in range(n):
+        if wz[c] == 0.0:
+            continue
+        tc = ck[c] - box[2]
+        for b in range(n):
+            if wy[b] == 0.0:
                 continue
-            for b in range(n):
-                if wy[b] == 0.0:
-                    continue
-                sx = 0.0
-                sdx = 0.0
-                for a in range(n):
-                    if pool[slot, oi + a, oj + b, ok + c] == 1:
-                        sx += wx[a]
-                        sdx += dx[a]
-                gx += sdx * wy[b] * wz[c]
-                gy += sx * dy[b] * wz[c]
-                gz += sx * wy[b] * dz[c]
-                ssum += sx * wy[b] * wz[c]
-    else:
-        for c in range(n):
-            k = min(max(k0 + c, 0), shape[2] - 1) if shape[2] > 0 else k0 + c
-            for b in range(n):
-                j = min(max(j0 + b, 0), shape[1] - 1)
-                sx = 0.0
-                sdx = 0.0
-                for a in range(n):
-                    i = min(max(i0 + a, 0), shape[0] - 1) if shape[0] > 0 else i0 + a
-                    v = voxel_at(pool, table, box, cs, i, j, k)
-                    if v == MISSING:
-                        return -1.0
-                    if v == 1:
-                        sx += wx[a]
-                        sdx += dx[a]
-                gx += sdx * wy[b] * wz[c]
-                gy += sx * dy[b] * wz[c]
-                gz += sx * wy[b] * dz[c]
-                ssum += sx * wy[b] * wz[c]
+            tb = cj[b] - box[1]
+            sx = 0.0
+            sdx = 0.0
+            lo = 0
+            while lo < n:
+                hi = run_end[lo]
+                ta = ci[lo] - box[0]
+                if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
+                        or tc >= table.shape[2]):
+                    return -1.0
+                slot = table[ta, tb, tc]
+                if slot == -1:
+                    return -1.0
+                if slot >= 0:  # -2: outside a finite volume, not wall
+                    for a in range(lo, hi):
+                        if pool[slot, oi[a], oj[b], ok[c]] == 1:
+                            sx += wx[a]
+                            sdx += dx[a]
+                lo = hi
+            gx += sdx * wy[b] * wz[c]
+            gy += sx * dy[b] * wz[c]
+            gz += sx * wy[b] * dz[c]
+            ssum += sx * wy[b] * wz[c]
     W = sw[0] * sw[1] * sw[2]
     S = ssum / W
     # ∇S = (Σ χ ∇w − S ∇W) / W: the second term cancels what the finite window
@@ -374,7 +377,11 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                 for q in range(3):
                     x[q] = pos[r, q] + tmin * d[q]
                 x[axis] = vox[r, axis] + (1 if sgn > 0 else 0)
-                ok = surface_normal(pool, table, box, cs, shape, x, d, sigma, radius, newton, nrm)
+                if n_wall == n_poly:
+                    # Index-matched: every interface is invisible, no normal needed.
+                    ok = 2
+                else:
+                    ok = surface_normal(pool, table, box, cs, shape, x, d, sigma, radius, newton, nrm)
                 if ok < 0:
                     if not _request_neighbourhood(pool, table, box, cs, shape, x, d, radius,
                                                   request, r):
@@ -386,8 +393,13 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                     for q in range(3):
                         nrm[q] = 0.0
                     nrm[axis] = -sgn
-                new_medium = _interface(d, nrm, medium[r], n_wall, n_poly, fresnel, seed,
-                                        ray_ids[r], events[r], newd)
+                if ok == 2:
+                    new_medium = 1 - medium[r]
+                    for q in range(3):
+                        newd[q] = d[q]
+                else:
+                    new_medium = _interface(d, nrm, medium[r], n_wall, n_poly, fresnel, seed,
+                                            ray_ids[r], events[r], newd)
                 events[r] += 1
                 path[r] += tmin
                 for q in range(3):
@@ -426,6 +438,12 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                     break
                 if v == medium[r]:
                     _advance(pos, r, d, step, path)
+                    continue
+                if n_wall == n_poly:
+                    # Index-matched: the interface is counted, nothing deflects.
+                    _advance(pos, r, d, step, path)
+                    medium[r] = v
+                    events[r] += 1
                     continue
                 for q in range(3):
                     pos[r, q] = pos[r, q] + 0.5 * step * d[q]

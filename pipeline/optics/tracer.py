@@ -73,9 +73,11 @@ def settings_for(method: str, **changes) -> TraceSettings:
 
 @dataclass
 class Beam:
-    """Parallel rays entering the T = 0 face.
+    """Rays entering the T = 0 face.
 
-    origins : (N, 3) entry points [voxels]; direction : unit vector (inside the sample).
+    origins : (N, 3) entry points [voxels]; direction : (3,) one direction
+    for every ray, or (N, 3) one per ray; inside the sample, or in the outside
+    medium when :func:`trace_beam` is given ``n_outside``.
     """
 
     origins: np.ndarray
@@ -155,9 +157,21 @@ def _svm_normal(box: np.ndarray, centre: np.ndarray, lo: np.ndarray) -> tuple[np
     return w / norm, True
 
 
+def _enter(dirs: np.ndarray, status: np.ndarray, n_in: np.ndarray, n_out: float) -> None:
+    """Refract directions (in place) through the T = 0 face from index n_out into n_in."""
+    tang = dirs[:, [0, 2]] * (n_out / n_in)[:, None]
+    s2 = np.sum(tang**2, axis=1)
+    tir = s2 >= 1.0
+    status[tir & (status == K.NEEDS_CHUNK)] = K.REFLECTED
+    ok = ~tir
+    dirs[ok, 0] = tang[ok, 0]
+    dirs[ok, 2] = tang[ok, 1]
+    dirs[ok, 1] = np.sqrt(1.0 - s2[ok])
+
+
 def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
                settings: TraceSettings = PRESETS["accurate"], seed: int = 0,
-               capacity: int = 512) -> RayResult:
+               capacity: int = 512, n_outside: float | None = None) -> RayResult:
     """Trace ``beam`` through ``source`` (an ArraySource or WoodSource).
 
     Parameters
@@ -170,6 +184,11 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
         Seed of the per-ray Fresnel streams.
     capacity : int
         Most chunks held in memory at once.
+    n_outside : float, optional
+        Refractive index of the medium the beam comes from (1.0: air).  Each
+        ray is then refracted at the T = 0 face into the phase of the voxel it
+        enters (or reflected, status "reflected", where that is total);
+        without it the beam's directions are already inside the sample.
     """
     settings = settings.validate()
     if not (n_wall > 0 and n_poly > 0 and math.isfinite(n_wall) and math.isfinite(n_poly)):
@@ -177,7 +196,11 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     cache = ChunkCache(source, capacity=capacity)
     n = len(beam.ray_ids)
     pos = beam.origins.astype(np.float64).copy()
-    dirs = np.tile(beam.direction, (n, 1))
+    dirs = np.array(np.broadcast_to(np.asarray(beam.direction, np.float64), (n, 3)))
+    norms = np.linalg.norm(dirs, axis=1)
+    if np.any(~(norms > 0)) or np.any(dirs[:, 1] <= 0):
+        raise ParameterError("beam directions must be non-zero and point into the sample (+T)")
+    dirs /= norms[:, None]
     vox = np.floor(pos).astype(np.int64)
     vox[:, 1] = 0
     pos[:, 1] = 0.0
@@ -201,6 +224,8 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
             status[r] = K.SIDE
         else:
             medium[r] = v
+    if n_outside is not None:
+        _enter(dirs, status, np.where(medium == 1, n_wall, n_poly), float(n_outside))
     while True:
         K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
                 beam.ray_ids, cache.pool, cache.table, cache.box, cs, shape, method,
@@ -215,12 +240,12 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
             # Keep every chunk that a live ray's normal window may read, or rays
             # near chunk borders would evict each other's chunks forever.
             live = np.floor(pos[status >= K.NEEDS_CHUNK]).astype(np.int64)
+            # The chunks each live ray's window [x - reach, x + reach] spans.
+            spans = np.unique(np.hstack([(live - reach) // cs, (live + reach) // cs]), axis=0)
             keep = set()
-            # Offsets one chunk apart from -reach to reach meet every chunk of the window.
-            steps = [sorted(set(range(-reach, reach, int(c))) | {reach}) for c in cs]
-            for corner in np.array(np.meshgrid(*steps)).T.reshape(-1, 3):
-                c = (live + corner) // cs
-                keep.update(map(tuple, c[c[:, 1] >= 0]))
+            for lo0, lo1, lo2, hi0, hi1, hi2 in spans.tolist():
+                keep.update((a, b, c) for a in range(lo0, hi0 + 1) for b in range(max(lo1, 0), hi1 + 1)
+                            for c in range(lo2, hi2 + 1))
             cache.require(map(tuple, request[waiting]), keep=keep)
         half = settings.svm_box // 2
         for r in asking:

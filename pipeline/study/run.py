@@ -115,9 +115,21 @@ class Plan:
                 for summ in self.summaries]
 
 
+def wood_record(wood, seed: int, voxel_um: float) -> dict:
+    """What a wood field's chunks depend on: its cache key (shared by studies and the camera)."""
+    return {"stage": "micro", "version": VERSIONS["micro"], "wood": wood.to_dict(),
+            "seed": seed, "voxel_um": voxel_um, "chunks": list(CHUNKS)}
+
+
+def wood_store(cache_dir, wood, seed: int, voxel_um: float) -> WoodChunkStore:
+    """The chunk store of a wood field under ``cache_dir/micro/``."""
+    key = cache_key(wood_record(wood, seed, voxel_um))
+    return WoodChunkStore(Path(cache_dir) / "micro" / f"{key}.zarr", wood, seed=seed,
+                          voxel_um=voxel_um, chunks=CHUNKS)
+
+
 def micro_record(scene: Scene) -> dict:
-    return {"stage": "micro", "version": VERSIONS["micro"], "wood": scene.wood.to_dict(),
-            "seed": scene.seed, "voxel_um": scene.voxel_um, "chunks": list(CHUNKS)}
+    return wood_record(scene.wood, scene.seed, scene.voxel_um)
 
 
 def beam_geometry(scene: Scene) -> tuple[int, float]:
@@ -430,30 +442,35 @@ def _provenance(plan: Plan) -> dict:
             "cache_keys": json.dumps(plan.keys()), "source": f"twray {__version__}"}
 
 
-def dataset_is_current(plan: Plan, out: Path) -> bool:
-    """Whether ``out`` was built from exactly this study and these cache entries."""
+def _is_current(out: Path, provenance: dict) -> bool:
+    """Whether the Dataset at ``out`` carries exactly these provenance attributes."""
     import zarr
 
     try:
         attrs = dict(zarr.open_group(out, mode="r").attrs)
     except Exception:
         return False
-    return all(attrs.get(k) == v for k, v in _provenance(plan).items())
+    return all(attrs.get(k) == v for k, v in provenance.items())
 
 
-def write_dataset(plan: Plan, results_dir) -> Path:
-    """Publish ``results/<study>.zarr`` (built aside, then renamed into place).
+def dataset_is_current(plan: Plan, out: Path) -> bool:
+    """Whether ``out`` was built from exactly this study and these cache entries."""
+    return _is_current(out, _provenance(plan))
 
-    An existing Dataset built from the same study and cache entries is kept.
+
+def publish_dataset(build, out: Path, provenance: dict) -> Path:
+    """Write the Dataset ``build()`` to ``out`` (built aside, then renamed into place).
+
+    An existing Dataset whose attributes include ``provenance`` is kept.
     """
     from ..microstructure.volume import publish, staged_path
 
-    out = Path(results_dir) / f"{plan.study.name}.zarr"
-    if dataset_is_current(plan, out):
+    if _is_current(out, provenance):
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     staged = staged_path(out)
-    ds = study_dataset(plan)
+    ds = build()
+    ds.attrs.update(provenance)
     try:
         ds.to_zarr(staged, mode="w", zarr_format=3, consolidated=False)
         publish(staged, out, overwrite=True)
@@ -463,3 +480,9 @@ def write_dataset(plan: Plan, results_dir) -> Path:
 
             shutil.rmtree(staged, ignore_errors=True)
     return out
+
+
+def write_dataset(plan: Plan, results_dir) -> Path:
+    """Publish ``results/<study>.zarr``; one built from the same study and cache entries is kept."""
+    return publish_dataset(lambda: study_dataset(plan), Path(results_dir) / f"{plan.study.name}.zarr",
+                           _provenance(plan))

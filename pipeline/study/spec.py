@@ -29,11 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from ..optics.tracer import PRESETS, TraceSettings, settings_for
-from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, load_preset,
-                      read_yaml_file, validate)
+from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, key_lines,
+                      load_preset, read_yaml_file, validate)
 
 # What each scale does to the paper-scale numbers of a study file.
 SCALES = {
@@ -96,26 +94,13 @@ class Study:
         return out
 
 
-def _lines(text: str) -> dict[tuple, int]:
-    """Line numbers of keys (top level and one level down) for error messages."""
-    out: dict[tuple, int] = {}
-    node = yaml.compose(text)
-    if isinstance(node, yaml.MappingNode):
-        for k, v in node.value:
-            out[(str(k.value),)] = k.start_mark.line + 1
-            if isinstance(v, yaml.MappingNode):
-                for k2, _ in v.value:
-                    out[(str(k.value), str(k2.value))] = k2.start_mark.line + 1
-    return out
-
-
 def load_study(path, *, scale: str = "paper") -> Study:
     """Read and validate a study file; expand it into scenes at ``scale``."""
     path = Path(path)
     if scale not in SCALES:
         raise ParameterError(f"`scale` must be one of {', '.join(SCALES)}, got scale={scale!r}")
     text, data = read_yaml_file(path, "study")
-    lines = _lines(text)
+    lines = key_lines(text)
 
     def where(*keys) -> str:
         return f"{path} line {lines.get(tuple(keys), lines.get(keys[:1], '?'))}: "

@@ -1,0 +1,279 @@
+"""Render the images of a camera file as a cached Dask graph (SPEC.md §7).
+
+Each image is split into blocks of sensor rows, one task each; the tasks of
+all images run on one ``distributed.Client``.  The sheet's wood comes from
+the same content-addressed chunk store as the studies'
+(``cache/micro/<key>.zarr``, see :func:`pipeline.study.run.wood_store`), so
+only the chunks that camera rays visit are generated, once, and a sheet of
+the Table 1 base wood reuses the chunks the studies made.  A finished image
+is a cache entry ``cache/camera/<key>.npz`` whose key hashes the camera, the
+sheet, the object raster and the trace settings; a rerun renders nothing.
+
+Outputs under ``results/camera/``: ``<file>.zarr`` (an xarray Dataset of the
+images, their ideal thin-lens images and lost-sample counts),
+``<file>-<image>.png`` (each image, 8-bit grey, one pixel per sensor
+pixel), ``<file>-<image>-object.png`` (the object) and ``<file>.png`` (a
+figure of the objects and the images side by side).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..study.run import _atomic_write, cache_key, publish_dataset, wood_record, wood_store
+from .lens import RowsImage, ideal_image, render_rows
+from .scene import CameraStudy, ImageConfig
+
+VERSION = "1"
+ROWS_PER_TASK = 3
+
+
+@dataclass
+class Entry:
+    config: ImageConfig
+    key: str
+    path: Path
+    cached: bool
+
+
+def image_record(cfg: ImageConfig) -> dict:
+    """What an image depends on (its cache key)."""
+    sheet = None
+    if cfg.sheet is not None:
+        sheet = dataclasses.asdict(cfg.sheet)
+        sheet["wood"] = cfg.sheet.wood.to_dict()
+        sheet["micro"] = wood_record(cfg.sheet.wood, cfg.sheet.seed, cfg.sheet.voxel_um)
+    return {"stage": "camera", "version": VERSION, "camera": dataclasses.asdict(cfg.camera),
+            "sheet": sheet, "object": cfg.target.digest(), "settings": dataclasses.asdict(cfg.settings)}
+
+
+def plan_camera(study: CameraStudy, cache_dir) -> list[Entry]:
+    out = []
+    for cfg in study.images:
+        key = cache_key(image_record(cfg))
+        path = Path(cache_dir) / "camera" / f"{key}.npz"
+        out.append(Entry(cfg, key, path, path.exists()))
+    return out
+
+
+# ---------------------------------------------------------------------- tasks (run on workers)
+def render_block(cfg: ImageConfig, lo: int, hi: int, cache_dir: str) -> RowsImage:
+    """Sensor rows [lo, hi) of one image."""
+    from ..optics.sources import WoodSource
+
+    source = None
+    if cfg.sheet is not None:
+        sh = cfg.sheet
+        store = wood_store(cache_dir, sh.wood, sh.seed, sh.voxel_um)
+        source = WoodSource(sh.wood, thickness_um=sh.thickness_um, voxel_um=sh.voxel_um,
+                            seed=sh.seed, store=store)
+    return render_rows(cfg.camera, cfg.sheet, cfg.target, np.arange(lo, hi), settings=cfg.settings,
+                       source=source)
+
+
+def assemble(cfg: ImageConfig, path: str, *blocks: RowsImage) -> dict:
+    """Join the row blocks of an image and store it (atomically) as a cache entry."""
+    image = np.concatenate([b.image for b in blocks])
+    lost = np.concatenate([b.lost for b in blocks])
+    rays = image.size * cfg.camera.samples
+    arrays = {"image": image, "lost": lost,
+              "interfaces_per_ray": np.float64(sum(b.interfaces for b in blocks) / rays),
+              "chunks_loaded": np.int64(sum(b.chunks_loaded for b in blocks))}
+
+    def write(tmp):
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+    _atomic_write(Path(path), write)
+    return {"rays": rays, "chunks_loaded": int(arrays["chunks_loaded"])}
+
+
+def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROWS_PER_TASK,
+            progress: bool = False) -> dict:
+    """Render every image of ``entries`` that is not cached, on a ``distributed.Client``."""
+    import dask
+
+    tasks = []
+    n_blocks = 0
+    for e in entries:
+        if e.cached:
+            continue
+        cfg = dask.delayed(e.config, name=f"camera-config-{e.key[:12]}", traverse=False)
+        ny = e.config.camera.pixels[0]
+        blocks = [dask.delayed(render_block, pure=False)(
+            cfg, lo, min(lo + rows_per_task, ny), str(cache_dir),
+            dask_key_name=f"camera-rows-{e.key[:12]}-{lo}") for lo in range(0, ny, rows_per_task)]
+        n_blocks += len(blocks)
+        tasks.append(dask.delayed(assemble, pure=False)(
+            cfg, str(e.path), *blocks, dask_key_name=f"camera-image-{e.key[:12]}"))
+    report = {"images": len(tasks), "row_tasks": n_blocks, "rays": 0}
+    if not tasks:
+        return report
+    futures = client.compute(tasks)
+    if progress:
+        from distributed import progress as show
+
+        show(futures)
+    results = client.gather(futures)
+    report["rays"] = int(sum(r["rays"] for r in results))
+    return report
+
+
+# ---------------------------------------------------------------------- outputs
+def load_entry(e: Entry) -> dict:
+    with np.load(e.path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def edge_widths(image: np.ndarray, pixel_um: float, *, low: float = 0.25, high: float = 0.75) -> dict:
+    """Edge-spread widths along both sensor axes, from an image of the ``quadrant`` target.
+
+    The quadrant target is dark for x < 0 and y < 0: rows below the axis cross
+    one edge along x, columns left of it one edge along y.  Each edge-spread
+    function is the mean of those lines away from the corner, scaled between
+    its dark and light ends; its width is the distance between the ``low`` and
+    ``high`` levels (25-75 %: for a Lorentzian line spread, its FWHM), in µm
+    of the object plane (``pixel_um`` per pixel).
+    """
+    ny, nx = image.shape
+    out = {}
+    for name, esf in (("x", image[ny - ny // 3:, :].mean(axis=0)),
+                      ("y", image[:, : nx // 3].mean(axis=1)[::-1])):
+        ends = max(2, esf.size // 10)
+        dark, light = esf[:ends].mean(), esf[-ends:].mean()
+        level = (esf - dark) / (light - dark)
+        # Robust to noise: how many pixels lie below each level.
+        out[name] = float((np.sum(level < high) - np.sum(level < low)) * pixel_um)
+    return out
+
+
+def _png(path: Path, array: np.ndarray) -> None:
+    from PIL import Image
+
+    def write(tmp):
+        Image.fromarray(np.round(np.clip(array, 0, 1) * 255).astype(np.uint8), mode="L").save(tmp, "PNG")
+
+    _atomic_write(path, write)
+
+
+def _figure(study: CameraStudy, images: list, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(study.images)
+    fig, axes = plt.subplots(2, n, figsize=(2.6 * n, 5.4), squeeze=False)
+    for k, (cfg, img) in enumerate(zip(study.images, images)):
+        t = cfg.target
+        axes[0, k].imshow(t.raster, cmap="gray", vmin=0, vmax=1,
+                          extent=[-500 * t.width_mm, 500 * t.width_mm, -500 * t.height_mm, 500 * t.height_mm])
+        axes[0, k].set_title(f"{cfg.name}: object", fontsize=8)
+        axes[0, k].set_xlabel("µm", fontsize=7)
+        axes[1, k].imshow(img, cmap="gray", vmin=0, vmax=1)
+        sheet = ("no sheet" if cfg.sheet is None else
+                 f"{cfg.sheet.thickness_um / 1000:g} mm, ΔRI {cfg.sheet.ri_wall - cfg.sheet.ri_polymer:.3g}, "
+                 f"gap {cfg.sheet.gap_um:g} µm")
+        axes[1, k].set_title(f"f {cfg.camera.focal_mm:g} mm, {sheet}", fontsize=7)
+        for ax in axes[:, k]:
+            ax.tick_params(labelsize=6)
+    fig.suptitle(study.title, fontsize=9)
+    fig.tight_layout()
+
+    def write(tmp):
+        fig.savefig(tmp, dpi=150, format="png")
+
+    _atomic_write(path, write)
+    plt.close(fig)
+
+
+def camera_dataset(study: CameraStudy, entries: list[Entry]):
+    import xarray as xr
+
+    data = [load_entry(e) for e in entries]
+    cfgs = [e.config for e in entries]
+    ny, nx = cfgs[0].camera.pixels
+    if any(c.camera.pixels != (ny, nx) for c in cfgs):
+        raise ValueError("images of one camera file share the sensor")
+    names = [c.name for c in cfgs]
+    obj_px = np.array([c.camera.pitch_um / c.camera.magnification for c in cfgs])
+    rows = np.arange(ny)
+    cols = np.arange(nx)
+
+    def per_image(values, units, long_name):
+        return ("config", np.asarray(values), {"units": units, "long_name": long_name})
+
+    def sheet_value(get):
+        return [np.nan if c.sheet is None else get(c.sheet) for c in cfgs]
+
+    return xr.Dataset(
+        {
+            "image": (("config", "row", "col"), np.stack([d["image"] for d in data]).astype(np.float32),
+                      {"units": "1", "long_name": "mean object level seen by each pixel "
+                       "(1 = light background, 0 = dark ink or no light)"}),
+            "ideal": (("config", "row", "col"), np.stack([ideal_image(c.camera, c.target) for c in cfgs])
+                      .astype(np.float32), {"units": "1", "long_name": "ideal thin-lens image of the object"}),
+            "lost": (("config", "row", "col"), np.stack([d["lost"] for d in data]).astype(np.int32),
+                     {"units": "1", "long_name": "aperture samples that did not reach the object"}),
+            "interfaces_per_ray": per_image([float(d["interfaces_per_ray"]) for d in data], "1",
+                                            "interfaces met per camera ray in the sheet"),
+            "x_object_um": (("config", "col"), (cols[None, :] - 0.5 * (nx - 1)) * obj_px[:, None],
+                            {"units": "um", "long_name": "object-plane x of each pixel column"}),
+            "y_object_um": (("config", "row"), (0.5 * (ny - 1) - rows[None, :]) * obj_px[:, None],
+                            {"units": "um", "long_name": "object-plane y of each pixel row"}),
+        },
+        coords={
+            "config": ("config", np.array(names, dtype=object), {"long_name": "image configuration"}),
+            "row": ("row", rows, {"long_name": "sensor row (image shown upright)"}),
+            "col": ("col", cols, {"long_name": "sensor column"}),
+            "focal_mm": per_image([c.camera.focal_mm for c in cfgs], "mm", "focal length"),
+            "objective_mm": per_image([c.camera.objective_mm for c in cfgs], "mm",
+                                      "lens to object plane distance"),
+            "aperture_mm": per_image([c.camera.aperture_mm for c in cfgs], "mm", "aperture diameter"),
+            "magnification": per_image([c.camera.magnification for c in cfgs], "1", "thin-lens magnification"),
+            "gap_um": per_image(sheet_value(lambda s: s.gap_um), "um", "sheet exit face to object plane"),
+            "delta_ri": per_image(sheet_value(lambda s: s.ri_wall - s.ri_polymer), "1",
+                                  "refractive-index difference, cell wall minus polymer (NaN: no sheet)"),
+            "thickness_um": per_image(sheet_value(lambda s: s.thickness_um), "um", "sheet thickness"),
+            "object": ("config", np.array([c.target.name for c in cfgs], dtype=object), {"long_name": "object"}),
+            "object_size_mm": per_image([c.target.width_mm for c in cfgs], "mm", "object card width"),
+        },
+        attrs={
+            "Conventions": "CF-1.10",
+            "title": study.title,
+            "source": f"twray {__version__}",
+            "camera_yaml": study.text,
+            "scale": study.scale,
+            "samples_per_pixel": cfgs[0].camera.samples,
+            "pixel_pitch_um": cfgs[0].camera.pitch_um,
+            "r_axis": json.dumps({c.name: (None if c.sheet is None else c.sheet.r_axis) for c in cfgs}),
+            "trace_settings": json.dumps(dataclasses.asdict(cfgs[0].settings)),
+            "cache_keys": json.dumps({e.config.name: e.key for e in entries}),
+        },
+    )
+
+
+def write_outputs(study: CameraStudy, entries: list[Entry], results_dir) -> list[Path]:
+    """The Dataset, one PNG per image and per object, and a figure of them all."""
+    results = Path(results_dir)
+    provenance = {"camera_yaml": study.text, "scale": study.scale, "source": f"twray {__version__}",
+                  "cache_keys": json.dumps({e.config.name: e.key for e in entries})}
+    out = [publish_dataset(lambda: camera_dataset(study, entries), results / f"{study.name}.zarr",
+                           provenance)]
+    images = [load_entry(e)["image"] for e in entries]
+    for e, img in zip(entries, images):
+        p = results / f"{study.name}-{e.config.name}.png"
+        _png(p, img)
+        q = results / f"{study.name}-{e.config.name}-object.png"
+        _png(q, e.config.target.raster)
+        out += [p, q]
+    fig = results / f"{study.name}.png"
+    _figure(study, images, fig)
+    out.append(fig)
+    return out
