@@ -9,7 +9,7 @@ SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
-.PHONY: install demo test bench bench-generate bench-trace bench-study clean table1 $(STUDIES)
+.PHONY: install demo test bench bench-generate bench-trace bench-study bench-camera clean table1 camera $(STUDIES)
 
 install: $(STAMP)
 
@@ -27,6 +27,10 @@ table1: install
 $(STUDIES): install
 	$(BIN)/twray study studies/table1/$@.yaml $(STUDY_ARGS)
 
+## The paper's Figure 5: images through a TW sheet (results/camera/), e.g. `make camera SCALE=small`.
+camera: install
+	$(BIN)/twray camera studies/camera/figure5.yaml $(STUDY_ARGS)
+
 ## A birch sample volume and its slice images.
 demo: install
 	$(BIN)/twray generate --preset birch --size-um 150,150,100 --seed 1 --out results/demo/birch.zarr --overwrite
@@ -36,7 +40,7 @@ demo: install
 test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-bench: bench-generate bench-trace bench-study
+bench: bench-generate bench-trace bench-study bench-camera
 
 bench-generate: install
 	$(BIN)/python benchmarks/bench_generate.py --out results/bench.json
@@ -49,3 +53,6 @@ bench-trace: install
 
 bench-study: install
 	$(BIN)/python benchmarks/bench_study.py --out results/bench.json
+
+bench-camera: install
+	$(BIN)/python benchmarks/bench_camera.py --out results/bench.json

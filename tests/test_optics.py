@@ -312,3 +312,34 @@ def test_user_volumes_load_from_npy_zarr_and_tiff_folders_alike(tmp_path):
     for d, st in results[1:]:
         assert np.array_equal(d, results[0][0]) and np.array_equal(st, results[0][1])
     assert (results[0][1] == 3).any()  # a finite volume: some rays leave through a side
+
+
+@pytest.mark.parametrize("method", ["paper", "fast", "accurate"])
+def test_rays_from_air_refract_into_a_slab_and_out_parallel_to_themselves(method):
+    """Per-ray directions given in air (n_outside = 1): Snell at the entrance face into
+    the phase each ray meets, straight through a uniform slab, Snell again at the exit;
+    the exit direction equals the incoming one and the ray is displaced by t·tan θ_in."""
+    nT = 40
+    vol = np.zeros((60, nT, 60), np.uint8)
+    vol[:, :, 30:] = 1  # half the slab is wall: each half refracts with its own index
+    angles = np.radians([0.0, 5.0, 20.0, 40.0, -30.0, 60.0])
+    dirs = np.column_stack([np.sin(angles), np.cos(angles), np.zeros_like(angles)])
+    origins = np.array([[20.0, 0.0, 10.0 + 40 * (i % 2)] for i in range(angles.size)])
+    res = trace_beam(ArraySource(vol), Beam(origins, dirs, np.arange(angles.size)),
+                     n_wall=1.54, n_poly=1.49, settings=settings_for(method, exit="air"),
+                     n_outside=1.0)
+    assert res.counts()["transmitted"] == angles.size and np.all(res.events == 0)
+    n_in = np.where(origins[:, 2] >= 30, 1.54, 1.49)
+    sin_in = np.sin(angles) / n_in
+    assert np.allclose(res.direction[:, 0], sin_in, atol=1e-12)
+    assert np.allclose(res.exit_direction, dirs, atol=1e-12)
+    shift = nT * sin_in / np.sqrt(1 - sin_in**2)
+    assert np.allclose(res.position[:, 0] - origins[:, 0], shift, atol=1e-9)
+
+
+def test_index_matched_interfaces_are_counted_but_never_deflect():
+    src = WoodSource(build_params("birch"), thickness_um=20.0, seed=2)
+    beam = square_beam(50, 40.0, seed=1, direction=(0.2, 1.0, -0.1))
+    res = trace_beam(src, beam, n_wall=1.53, n_poly=1.53, settings=settings_for("fast"))
+    assert res.events.sum() > 100
+    assert np.array_equal(res.direction, np.tile(beam.direction / np.linalg.norm(beam.direction), (50, 1)))
