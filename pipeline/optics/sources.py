@@ -161,8 +161,9 @@ class ChunkCache:
         than thrash.
         """
         self.tick += 1
-        keys = [tuple(int(v) for v in k) for k in keys]
-        protected = set(keys) | {tuple(int(v) for v in k) for k in keep}
+        keys = list(dict.fromkeys(tuple(int(v) for v in k) for k in keys))
+        protected = set(keys)
+        protected.update(keep)  # (i, j, k) tuples of ints
         for k in protected:
             self.last_use[k] = self.tick
         new = [k for k in dict.fromkeys(keys) if k not in self.slots and k not in self.outside]

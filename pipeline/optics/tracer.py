@@ -246,7 +246,7 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
             for lo0, lo1, lo2, hi0, hi1, hi2 in spans.tolist():
                 keep.update((a, b, c) for a in range(lo0, hi0 + 1) for b in range(max(lo1, 0), hi1 + 1)
                             for c in range(lo2, hi2 + 1))
-            cache.require(map(tuple, request[waiting]), keep=keep)
+            cache.require(np.unique(request[waiting], axis=0).tolist(), keep=keep)
         half = settings.svm_box // 2
         for r in asking:
             centre = pos[r]
