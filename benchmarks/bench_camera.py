@@ -19,6 +19,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from _bench_json import write_section
@@ -53,7 +54,7 @@ def figure5(tmp: Path, scale: str) -> dict:
 def anisotropy(samples: int) -> dict:
     import numpy as np
 
-    from pipeline.camera.lens import Camera, ideal_image, render_rows
+    from pipeline.camera.lens import ideal_image, render_rows
     from pipeline.camera.run import edge_widths
     from pipeline.camera.scene import load_camera
     from pipeline.camera.targets import make_target
@@ -64,7 +65,7 @@ def anisotropy(samples: int) -> dict:
     for cfg in study.images[:3]:
         if cfg.name == "image-2":
             continue
-        cam = cfg.camera.__class__(**{**cfg.camera.__dict__, "samples": samples})
+        cam = replace(cfg.camera, samples=samples)
         sh = cfg.sheet
         t = make_target({"kind": "quadrant", "size_mm": 1.0})
         src = WoodSource(sh.wood, thickness_um=sh.thickness_um, voxel_um=sh.voxel_um, seed=sh.seed)
