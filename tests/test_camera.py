@@ -246,3 +246,21 @@ def test_figure_5_file_holds_the_papers_three_configurations_and_a_control():
         assert (c.sheet.thickness_um, c.sheet.width_um, c.sheet.length_um) == (500.0, 1500.0, 1000.0)
         assert c.sheet.ri_polymer == 1.53
     assert [c.sheet.ri_wall for c in study.images] == [1.54, 1.54, 1.54, 1.53]
+
+
+def test_camera_command_writes_results_and_a_rerun_renders_nothing(tmp_path, capsys):
+    path = tmp_path / "cam.yaml"
+    path.write_text(CAMERA_FILE)
+    args = ["camera", str(path), "--scale", "small", "--threads", "2", "--cache", str(tmp_path / "c"),
+            "--results", str(tmp_path / "r")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "near: f 10 mm, m 0.5, ΔRI 0.03, gap 5 µm" in out and "open: f 10 mm, m 0.5, no sheet" in out
+    assert main(args + ["--dry-run"]) == 0
+    assert capsys.readouterr().out.count(": cached (") == 2
+    before = (tmp_path / "r" / "cam.zarr" / "zarr.json").stat().st_mtime_ns
+    assert main(args) == 0
+    assert "dashboard" not in capsys.readouterr().err  # no cluster was started
+    ds = xr.open_zarr(tmp_path / "r" / "cam.zarr", consolidated=False)
+    assert ds.attrs["scale"] == "small" and ds["image"].shape == (2, 9, 11)
+    assert (tmp_path / "r" / "cam.zarr" / "zarr.json").stat().st_mtime_ns == before  # kept as it was
