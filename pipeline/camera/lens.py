@@ -22,7 +22,10 @@ refracts out into air, crosses the gap, and reads the object bilinearly.
 The pixel value is the mean over its samples.  A sample whose ray does not
 come out of the exit face (reflected back, total internal reflection at the
 exit face, trapped, or out through the sheet's sides) sees no light: value 0,
-counted per pixel as ``lost``.
+counted per pixel as ``lost``.  The wood is generated without lateral bounds;
+a ray counts as out through a side when it reaches the exit plane beyond the
+sheet's width or length (rare: the field of view is 0.64 mm of a 1.5 × 1 mm
+sheet in Figure 5).
 """
 
 from __future__ import annotations
