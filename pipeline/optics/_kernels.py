@@ -117,43 +117,13 @@ def _normalise(v):
 # Normal estimation: gradient of the Gaussian-smoothed wall indicator
 # --------------------------------------------------------------------------
 @njit(cache=True, nogil=True)
-def smoothed_wall(pool, table, box, cs, shape, x, sigma, radius, grad):
-    """S(x) = (G_σ * χ_wall)(x) / ΣG and its gradient direction (into ``grad``).
+def _window_across_chunks(pool, table, box, cs, shape, n, i0, j0, k0, wx, wy, wz, dx, dy, dz):
+    """smoothed_wall's sums for a window that crosses chunks (or the volume's T faces).
 
-    The sum runs over the voxels within ``radius`` of x with separable
-    weights; indices beyond the volume are clamped (replicated border).
-    Returns S in [0, 1], or -1.0 when a needed chunk is not resident.
+    Returns (flag, the three gradient sums, the weight sum); flag -1.0 when a
+    chunk is not resident.
+    The sums run in the same order as the one-chunk loop, so both give the same bits.
     """
-    # Voxel centres within ±radius of x along each axis: a window centred on x,
-    # so truncation does not tilt the gradient.
-    n = 2 * np.int64(math.floor(radius)) + 2
-    i0 = np.int64(math.ceil(x[0] - 0.5 - radius))
-    j0 = np.int64(math.ceil(x[1] - 0.5 - radius))
-    k0 = np.int64(math.ceil(x[2] - 0.5 - radius))
-    wx = np.zeros(n)
-    wy = np.zeros(n)
-    wz = np.zeros(n)
-    dx = np.zeros(n)
-    dy = np.zeros(n)
-    dz = np.zeros(n)
-    inv2s2 = 0.5 / (sigma * sigma)
-    sw = np.zeros(3)
-    for q in range(n):
-        ax = i0 + q + 0.5 - x[0]
-        ay = j0 + q + 0.5 - x[1]
-        az = k0 + q + 0.5 - x[2]
-        if abs(ax) <= radius:
-            wx[q] = math.exp(-ax * ax * inv2s2)
-        if abs(ay) <= radius:
-            wy[q] = math.exp(-ay * ay * inv2s2)
-        if abs(az) <= radius:
-            wz[q] = math.exp(-az * az * inv2s2)
-        dx[q] = ax * wx[q]
-        dy[q] = ay * wy[q]
-        dz[q] = az * wz[q]
-        sw[0] += wx[q]
-        sw[1] += wy[q]
-        sw[2] += wz[q]
     gx = 0.0
     gy = 0.0
     gz = 0.0
@@ -198,10 +168,10 @@ def smoothed_wall(pool, table, box, cs, shape, x, sigma, radius, grad):
                 ta = ci[lo] - box[0]
                 if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
                         or tc >= table.shape[2]):
-                    return -1.0
+                    return -1.0, 0.0, 0.0, 0.0, 0.0
                 slot = table[ta, tb, tc]
                 if slot == -1:
-                    return -1.0
+                    return -1.0, 0.0, 0.0, 0.0, 0.0
                 if slot >= 0:  # -2: outside a finite volume, not wall
                     for a in range(lo, hi):
                         if pool[slot, oi[a], oj[b], ok[c]] == 1:
@@ -212,6 +182,88 @@ def smoothed_wall(pool, table, box, cs, shape, x, sigma, radius, grad):
             gy += sx * dy[b] * wz[c]
             gz += sx * wy[b] * dz[c]
             ssum += sx * wy[b] * wz[c]
+    return 0.0, gx, gy, gz, ssum
+
+
+@njit(cache=True, nogil=True)
+def smoothed_wall(pool, table, box, cs, shape, x, sigma, radius, grad):
+    """S(x) = (G_σ * χ_wall)(x) / ΣG and its gradient direction (into ``grad``).
+
+    The sum runs over the voxels within ``radius`` of x with separable
+    weights; indices beyond the volume are clamped (replicated border).
+    Returns S in [0, 1], or -1.0 when a needed chunk is not resident.
+    """
+    # Voxel centres within ±radius of x along each axis: a window centred on x,
+    # so truncation does not tilt the gradient.
+    n = 2 * np.int64(math.floor(radius)) + 2
+    i0 = np.int64(math.ceil(x[0] - 0.5 - radius))
+    j0 = np.int64(math.ceil(x[1] - 0.5 - radius))
+    k0 = np.int64(math.ceil(x[2] - 0.5 - radius))
+    wx = np.zeros(n)
+    wy = np.zeros(n)
+    wz = np.zeros(n)
+    dx = np.zeros(n)
+    dy = np.zeros(n)
+    dz = np.zeros(n)
+    inv2s2 = 0.5 / (sigma * sigma)
+    sw = np.zeros(3)
+    for q in range(n):
+        ax = i0 + q + 0.5 - x[0]
+        ay = j0 + q + 0.5 - x[1]
+        az = k0 + q + 0.5 - x[2]
+        if abs(ax) <= radius:
+            wx[q] = math.exp(-ax * ax * inv2s2)
+        if abs(ay) <= radius:
+            wy[q] = math.exp(-ay * ay * inv2s2)
+        if abs(az) <= radius:
+            wz[q] = math.exp(-az * az * inv2s2)
+        dx[q] = ax * wx[q]
+        dy[q] = ay * wy[q]
+        dz[q] = az * wz[q]
+        sw[0] += wx[q]
+        sw[1] += wy[q]
+        sw[2] += wz[q]
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    ssum = 0.0
+    # Usually the whole window lies in one resident chunk: read the pool directly.
+    slot = -1
+    ci0, cj0, ck0 = chunk_of(cs, i0, j0, k0)
+    if (ci0 == (i0 + n - 1) // cs[0] and cj0 == (j0 + n - 1) // cs[1] and ck0 == (k0 + n - 1) // cs[2]
+            and j0 >= 0 and j0 + n <= shape[1]
+            and (shape[0] == 0 or (i0 >= 0 and i0 + n <= shape[0]))
+            and (shape[2] == 0 or (k0 >= 0 and k0 + n <= shape[2]))):
+        a_ = ci0 - box[0]
+        b_ = cj0 - box[1]
+        c_ = ck0 - box[2]
+        if (0 <= a_ < table.shape[0] and 0 <= b_ < table.shape[1] and 0 <= c_ < table.shape[2]):
+            slot = table[a_, b_, c_]
+    if slot >= 0:
+        oi0 = i0 - ci0 * cs[0]
+        oj0 = j0 - cj0 * cs[1]
+        ok0 = k0 - ck0 * cs[2]
+        for c in range(n):
+            if wz[c] == 0.0:
+                continue
+            for b in range(n):
+                if wy[b] == 0.0:
+                    continue
+                sx = 0.0
+                sdx = 0.0
+                for a in range(n):
+                    if pool[slot, oi0 + a, oj0 + b, ok0 + c] == 1:
+                        sx += wx[a]
+                        sdx += dx[a]
+                gx += sdx * wy[b] * wz[c]
+                gy += sx * dy[b] * wz[c]
+                gz += sx * wy[b] * dz[c]
+                ssum += sx * wy[b] * wz[c]
+    else:
+        flag, gx, gy, gz, ssum = _window_across_chunks(pool, table, box, cs, shape, n, i0, j0, k0,
+                                                       wx, wy, wz, dx, dy, dz)
+        if flag < 0.0:
+            return -1.0
     W = sw[0] * sw[1] * sw[2]
     S = ssum / W
     # ∇S = (Σ χ ∇w − S ∇W) / W: the second term cancels what the finite window
