@@ -177,6 +177,10 @@ def load_camera(path, *, scale: str = "paper") -> CameraStudy:
             own = mapping(spec.get("sheet"), keys + ("sheet",), _SHEET)
             s.update(own)
             sheet = _sheet(s, set(own), gap_um, f, fail, number, integer, keys)
+            if (sheet.gap_um + sheet.thickness_um) * 1e-3 >= camera.objective_mm:
+                fail(keys, f"`images.{name}`: the sheet must lie between the lens and the object: "
+                           f"gap + thickness = {(sheet.gap_um + sheet.thickness_um) * 1e-3:g} mm must be "
+                           f"< objective_mm = {camera.objective_mm:g}")
         out.append(ImageConfig(name, camera, sheet, target, dict(spec["object"]), settings))
     title = data.get("title", path.stem)
     if not isinstance(title, str):
