@@ -7,6 +7,7 @@ the rule, exit code 2, and nothing written.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shutil
 import sys
 import time
@@ -249,15 +250,20 @@ def _write_rays(result, summary, voxel, out):
         ds.to_netcdf(out, engine="scipy")
 
 
-def _add_study(sub):
-    p = sub.add_parser("study", help="run parameter studies (Table 1) into results/<study>.zarr")
-    p.add_argument("files", nargs="+", metavar="FILE.yaml", help="study files, e.g. studies/table1/*.yaml")
-    p.add_argument("--scale", default="paper", help="paper (the study's numbers) or small (quick)")
+def _add_cluster_options(p) -> None:
+    """Where study and camera graphs run, and their cache."""
     p.add_argument("--workers", default=None, help="local worker processes (default 1, using every core)")
     p.add_argument("--threads", default=None, help="threads per local worker (default: cores / workers)")
     p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
     p.add_argument("--scheduler-file", default=None, help="scheduler file of a running Dask cluster")
     p.add_argument("--cache", default="results/cache", help="cache directory (default results/cache)")
+
+
+def _add_study(sub):
+    p = sub.add_parser("study", help="run parameter studies (Table 1) into results/<study>.zarr")
+    p.add_argument("files", nargs="+", metavar="FILE.yaml", help="study files, e.g. studies/table1/*.yaml")
+    p.add_argument("--scale", default="paper", help="paper (the study's numbers) or small (quick)")
+    _add_cluster_options(p)
     p.add_argument("--results", default="results", help="where <study>.zarr goes (default results)")
     p.add_argument("--shard-rays", default="250", help="rays per tracing task (default 250)")
     p.add_argument("--dry-run", action="store_true", help="list each stage as cached or to compute")
@@ -284,6 +290,19 @@ def _study_client(args):
     return Client(cluster), cluster
 
 
+@contextlib.contextmanager
+def _cluster(args, command: str):
+    """A Dask client for ``args`` (printing its dashboard), closed with its local cluster."""
+    client, cluster = _study_client(args)
+    try:
+        print(f"twray {command}: dashboard {client.dashboard_link}", file=sys.stderr)
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def cmd_study(args) -> int:
     from .study.run import compute, describe_plan, plan_study, report_table, summary_rows, write_dataset
     from .study.spec import load_study
@@ -302,14 +321,8 @@ def cmd_study(args) -> int:
             print("\n".join(describe_plan(plan)))
         return 0
     if not all(p.up_to_date for p in plans):
-        client, cluster = _study_client(args)
-        try:
-            print(f"twray study: dashboard {client.dashboard_link}", file=sys.stderr)
+        with _cluster(args, "study") as client:
             compute(plans, client, progress=sys.stdout.isatty())
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
         plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
     for plan in plans:
         out = write_dataset(plan, args.results)
@@ -333,11 +346,7 @@ def _add_camera(sub):
     p = sub.add_parser("camera", help="render images through a TW sheet with a thin-lens camera")
     p.add_argument("file", metavar="FILE.yaml", help="camera file, e.g. studies/camera/figure5.yaml")
     p.add_argument("--scale", default="paper", help="paper (the file's numbers) or small (quick)")
-    p.add_argument("--workers", default=None, help="local worker processes (default 1, using every core)")
-    p.add_argument("--threads", default=None, help="threads per local worker (default: cores / workers)")
-    p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
-    p.add_argument("--scheduler-file", default=None, help="scheduler file of a running Dask cluster")
-    p.add_argument("--cache", default="results/cache", help="cache directory (default results/cache)")
+    _add_cluster_options(p)
     p.add_argument("--results", default="results/camera",
                    help="where the Dataset and PNGs go (default results/camera)")
     p.add_argument("--rows-per-task", default="3", help="sensor rows per rendering task (default 3)")
@@ -360,14 +369,8 @@ def cmd_camera(args) -> int:
             print(f"{study.name} {e.config.name}: {'cached' if e.cached else 'to render'} ({e.key[:12]})")
         return 0
     if not all(e.cached for e in entries):
-        client, cluster = _study_client(args)
-        try:
-            print(f"twray camera: dashboard {client.dashboard_link}", file=sys.stderr)
+        with _cluster(args, "camera") as client:
             compute(entries, client, args.cache, rows_per_task=rows, progress=sys.stdout.isatty())
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
         entries = plan_camera(study, args.cache)
     paths = write_outputs(study, entries, args.results)
     print(f"{paths[0]}: {study.title} (scale {study.scale}, {study.images[0].camera.samples} "

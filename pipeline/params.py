@@ -250,6 +250,18 @@ def key_lines(text: str) -> dict[tuple, int]:
     return out
 
 
+def yaml_locator(path: Path, text: str):
+    """``where(*keys)`` → "FILE line N: " for the deepest prefix of the key path found in ``text``."""
+    lines = key_lines(text)
+
+    def where(*keys) -> str:
+        while keys and keys not in lines:
+            keys = keys[:-1]
+        return f"{path} line {lines.get(keys, '?')}: "
+
+    return where
+
+
 def _key_lines(path: Path) -> dict[str, int]:
     """Line numbers of the top-level keys of a YAML file, for error messages."""
     return {k[0]: v for k, v in key_lines(path.read_text()).items() if len(k) == 1}

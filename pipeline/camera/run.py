@@ -198,9 +198,7 @@ def camera_dataset(study: CameraStudy, entries: list[Entry]):
 
     data = [load_entry(e) for e in entries]
     cfgs = [e.config for e in entries]
-    ny, nx = cfgs[0].camera.pixels
-    if any(c.camera.pixels != (ny, nx) for c in cfgs):
-        raise ValueError("images of one camera file share the sensor")
+    ny, nx = cfgs[0].camera.pixels  # the sensor is set once per camera file
     names = [c.name for c in cfgs]
     obj_px = np.array([c.camera.pitch_um / c.camera.magnification for c in cfgs])
     rows = np.arange(ny)

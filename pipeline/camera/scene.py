@@ -33,8 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..optics.tracer import PRESETS, TraceSettings, settings_for
-from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, key_lines,
-                      load_preset, read_yaml_file, validate)
+from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, load_preset,
+                      read_yaml_file, validate, yaml_locator)
 from .lens import Camera, Sheet
 from .targets import Target, make_target
 
@@ -82,13 +82,10 @@ def load_camera(path, *, scale: str = "paper") -> CameraStudy:
     if scale not in SCALES:
         raise ParameterError(f"`scale` must be one of {', '.join(SCALES)}, got scale={scale!r}")
     text, data = read_yaml_file(path, "camera file")
-    lines = key_lines(text)
+    where = yaml_locator(path, text)
 
     def fail(keys, msg):
-        keys = tuple(keys)
-        while keys and keys not in lines:
-            keys = keys[:-1]
-        raise ParameterError(f"{path} line {lines.get(keys, '?')}: {msg}")
+        raise ParameterError(where(*keys) + msg)
 
     def mapping(value, keys, known):
         if value is None:

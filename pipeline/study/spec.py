@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from ..optics.tracer import PRESETS, TraceSettings, settings_for
-from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, key_lines,
-                      load_preset, read_yaml_file, validate)
+from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, load_preset,
+                      read_yaml_file, validate, yaml_locator)
 
 # What each scale does to the paper-scale numbers of a study file.
 SCALES = {
@@ -100,10 +100,7 @@ def load_study(path, *, scale: str = "paper") -> Study:
     if scale not in SCALES:
         raise ParameterError(f"`scale` must be one of {', '.join(SCALES)}, got scale={scale!r}")
     text, data = read_yaml_file(path, "study")
-    lines = key_lines(text)
-
-    def where(*keys) -> str:
-        return f"{path} line {lines.get(tuple(keys), lines.get(keys[:1], '?'))}: "
+    where = yaml_locator(path, text)
 
     def fail(keys, msg):
         raise ParameterError(where(*keys) + msg)
