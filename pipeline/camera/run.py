@@ -27,6 +27,7 @@ import numpy as np
 
 from .. import __version__
 from ..study.run import _atomic_write, cache_key, publish_dataset, wood_record, wood_store
+from ..optics.tracer import TRACER_VERSION
 from .lens import RowsImage, ideal_image, render_rows
 from .scene import CameraStudy, ImageConfig
 
@@ -49,7 +50,8 @@ def image_record(cfg: ImageConfig) -> dict:
         sheet = dataclasses.asdict(cfg.sheet)
         sheet["wood"] = cfg.sheet.wood.to_dict()
         sheet["micro"] = wood_record(cfg.sheet.wood, cfg.sheet.seed, cfg.sheet.voxel_um)
-    return {"stage": "camera", "version": VERSION, "camera": dataclasses.asdict(cfg.camera),
+    return {"stage": "camera", "version": VERSION, "tracer": TRACER_VERSION,
+            "camera": dataclasses.asdict(cfg.camera),
             "sheet": sheet, "object": cfg.target.digest(), "settings": dataclasses.asdict(cfg.settings)}
 
 

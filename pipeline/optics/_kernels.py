@@ -3,7 +3,8 @@
 Coordinates are continuous voxel coordinates along [R, T, L]: voxel
 (i, j, k) occupies [i, i+1) × [j, j+1) × [k, k+1).  The sample spans
 T ∈ [0, nT); a ray leaving through T = nT is transmitted, through T = 0 it
-is reflected back out.  Voxels are read through a table of resident chunks;
+is reflected back out.  Voxels are read through a table of resident
+chunks, each held bit-packed (one bit per voxel, rows along R: pack_chunk);
 a ray that needs a chunk that is not resident pauses (status NEEDS_CHUNK)
 with its full state saved, so resuming it later gives bit-identical results
 whatever was resident when.
@@ -38,7 +39,7 @@ NEWTON_REACH = 3.0  # the crossing point moves at most this far along the ray [v
 
 
 @njit(inline="always", cache=True, nogil=True)
-def voxel_at(pool, table, box, cs, i, j, k):
+def voxel_at(bits, table, box, cs, shape, i, j, k):
     """Phase of voxel (i, j, k): 0/1, MISSING if its chunk is not resident, OUTSIDE."""
     ci = i // cs[0]
     cj = j // cs[1]
@@ -53,7 +54,39 @@ def voxel_at(pool, table, box, cs, i, j, k):
         return OUTSIDE
     if s < 0:
         return MISSING
-    return pool[s, i - ci * cs[0], j - cj * cs[1], k - ck * cs[2]]
+    if (shape[0] > 0 and (i < 0 or i >= shape[0])) or (shape[2] > 0 and (k < 0 or k >= shape[2])):
+        return OUTSIDE  # in the last, partly filled chunk of a finite volume
+    oi = i - ci * cs[0]
+    return np.uint8((bits[s, k - ck * cs[2], j - cj * cs[1], oi >> 6] >> np.uint64(oi & 63)) & np.uint64(1))
+
+
+@njit(cache=True, nogil=True)
+def pack_chunk(chunk, out):
+    """Bit-pack a chunk [R, T, L] of 0/1 (anything but 1 is not wall) into out [L, T, word].
+
+    Bit b of word w of row (k, j) is voxel (64·w + b, j, k): a row along R
+    of a normal window is one or two word reads.
+    """
+    nR, nT, nL = chunk.shape
+    acc = np.empty(nL, np.uint64)
+    for w in range(out.shape[2]):
+        for j in range(nT):
+            acc[:] = 0
+            for i in range(64 * w, min(64 * w + 64, nR)):
+                sh = np.uint64(i - 64 * w)
+                for k in range(nL):
+                    acc[k] |= np.uint64(chunk[i, j, k] == 1) << sh
+            for k in range(nL):
+                out[k, j, w] = acc[k]
+
+
+@njit(cache=True, nogil=True)
+def read_box(bits, table, box, cs, shape, ii, jj, kk, out):
+    """out[a, b, c] = voxel (ii[a], jj[b], kk[c]) of the resident chunks (MISSING where not)."""
+    for a in range(ii.size):
+        for b in range(jj.size):
+            for c in range(kk.size):
+                out[a, b, c] = voxel_at(bits, table, box, cs, shape, ii[a], jj[b], kk[c])
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -116,174 +149,224 @@ def _normalise(v):
 # --------------------------------------------------------------------------
 # Normal estimation: gradient of the Gaussian-smoothed wall indicator
 # --------------------------------------------------------------------------
-@njit(cache=True, nogil=True)
-def _window_across_chunks(pool, table, box, cs, shape, n, i0, j0, k0, wx, wy, wz, dx, dy, dz):
-    """smoothed_wall's sums for a window that crosses chunks (or the volume's T faces).
+PART_BITS = 7  # the window's rows are summed through tables of at most 2**7 entries
 
-    Returns (flag, the three gradient sums, the weight sum); flag -1.0 when a
-    chunk is not resident.
-    The sums run in the same order as the one-chunk loop, so both give the same bits.
-    """
-    gx = 0.0
-    gy = 0.0
-    gz = 0.0
-    ssum = 0.0
-    # Voxel indices of the window along each axis (clamped where the volume
-    # ends), split into chunk index and offset.  Each row of the sum reads a
-    # few runs of voxels (one per chunk it crosses, usually one) from the
-    # pool, and the chunk table is consulted once per run.
-    ci = np.empty(n, np.int64)
-    oi = np.empty(n, np.int64)
-    cj = np.empty(n, np.int64)
-    oj = np.empty(n, np.int64)
-    ck = np.empty(n, np.int64)
-    ok = np.empty(n, np.int64)
-    for q in range(n):
-        i = min(max(i0 + q, 0), shape[0] - 1) if shape[0] > 0 else i0 + q
-        j = min(max(j0 + q, 0), shape[1] - 1)
-        k = min(max(k0 + q, 0), shape[2] - 1) if shape[2] > 0 else k0 + q
-        ci[q] = i // cs[0]
-        oi[q] = i - ci[q] * cs[0]
-        cj[q] = j // cs[1]
-        oj[q] = j - cj[q] * cs[1]
-        ck[q] = k // cs[2]
-        ok[q] = k - ck[q] * cs[2]
-    run_end = np.empty(n, np.int64)  # end of the run of equal chunk index along R
-    run_end[n - 1] = n
-    for q in range(n - 2, -1, -1):
-        run_end[q] = run_end[q + 1] if ci[q + 1] == ci[q] else q + 1
-    for c in range(n):
-        if wz[c] == 0.0:
-            continue
-        tc = ck[c] - box[2]
-        for b in range(n):
-            if wy[b] == 0.0:
-                continue
-            tb = cj[b] - box[1]
-            sx = 0.0
-            sdx = 0.0
-            lo = 0
-            while lo < n:
-                hi = run_end[lo]
-                ta = ci[lo] - box[0]
-                if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
-                        or tc >= table.shape[2]):
-                    return -1.0, 0.0, 0.0, 0.0, 0.0
-                slot = table[ta, tb, tc]
-                if slot == -1:
-                    return -1.0, 0.0, 0.0, 0.0, 0.0
-                if slot >= 0:  # -2: outside a finite volume, not wall
-                    for a in range(lo, hi):
-                        if pool[slot, oi[a], oj[b], ok[c]] == 1:
-                            sx += wx[a]
-                            sdx += dx[a]
-                lo = hi
-            gx += sdx * wy[b] * wz[c]
-            gy += sx * dy[b] * wz[c]
-            gz += sx * wy[b] * dz[c]
-            ssum += sx * wy[b] * wz[c]
-    return 0.0, gx, gy, gz, ssum
+
+@njit(inline="always", cache=True, nogil=True)
+def window_size(radius):
+    """Voxel centres within ±radius of a point along one axis: at most this many."""
+    return 2 * np.int64(math.floor(radius)) + 2
+
+
+def window_scratch(radius):
+    """Scratch arrays of smoothed_wall for a window radius (allocated once per trace)."""
+    n = int(window_size(radius))
+    parts = -(-n // PART_BITS)
+    width = -(-n // parts)
+    return (np.zeros((9, n)), np.zeros((2, parts, 1 << width)), np.zeros((14, n), np.int64),
+            np.zeros((n, n, n), np.int64))
 
 
 @njit(cache=True, nogil=True)
-def smoothed_wall(pool, table, box, cs, shape, x, sigma, radius, grad):
+def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, wts, tab, segs, slots):
     """S(x) = (G_σ * χ_wall)(x) / ΣG and its gradient direction (into ``grad``).
 
     The sum runs over the voxels within ``radius`` of x with separable
     weights; indices beyond the volume are clamped (replicated border).
+    Voxels are read as rows along R from the bit-packed chunks (``bits``:
+    slot, L, T, 64-voxel word), and a row's weighted sums come from tables
+    of the window's R weights indexed by its bit pattern, a few bits at a time.
+    ``wts``, ``tab`` and ``segs`` are scratch (window_scratch).
     Returns S in [0, 1], or -1.0 when a needed chunk is not resident.
     """
-    # Voxel centres within ±radius of x along each axis: a window centred on x,
-    # so truncation does not tilt the gradient.
-    n = 2 * np.int64(math.floor(radius)) + 2
-    i0 = np.int64(math.ceil(x[0] - 0.5 - radius))
-    j0 = np.int64(math.ceil(x[1] - 0.5 - radius))
-    k0 = np.int64(math.ceil(x[2] - 0.5 - radius))
-    wx = np.zeros(n)
-    wy = np.zeros(n)
-    wz = np.zeros(n)
-    dx = np.zeros(n)
-    dy = np.zeros(n)
-    dz = np.zeros(n)
+    n = window_size(radius)
+    start = (np.int64(math.ceil(x[0] - 0.5 - radius)), np.int64(math.ceil(x[1] - 0.5 - radius)),
+             np.int64(math.ceil(x[2] - 0.5 - radius)))
+    # Gaussian weights w and x·w along each axis (rows 0-2 and 3-5 of wts),
+    # by the recurrence w(a + 1) = w(a) · exp(-(2a + 1) / 2σ²).
     inv2s2 = 0.5 / (sigma * sigma)
-    sw = np.zeros(3)
+    step2 = math.exp(-2.0 * inv2s2)
+    sw = wts[6]  # Σw and Σx·w per axis
+    sd = wts[7]
+    for ax in range(3):
+        a0 = start[ax] + 0.5 - x[ax]
+        w = math.exp(-a0 * a0 * inv2s2)
+        ratio = math.exp(-(2.0 * a0 + 1.0) * inv2s2)
+        s = 0.0
+        m = 0.0
+        for q in range(n):
+            a = a0 + q
+            wq = w if abs(a) <= radius else 0.0
+            wts[ax, q] = wq
+            wts[3 + ax, q] = a * wq
+            s += wq
+            m += a * wq
+            w *= ratio
+            ratio *= step2
+        sw[ax] = s
+        sd[ax] = m
+    # Sum tables over the R weights: entry p of part t is Σ of the weights of
+    # the bits set in p (bit b = window position t·width + b), built by doubling.
+    parts = tab.shape[1]
+    width = (n + parts - 1) // parts
+    for t in range(parts):
+        tab[0, t, 0] = 0.0
+        tab[1, t, 0] = 0.0
+        for hb in range(width):
+            q = t * width + hb
+            w = wts[0, q] if q < n else 0.0
+            m = wts[3, q] if q < n else 0.0
+            top = 1 << hb
+            for p in range(top):
+                tab[0, t, top + p] = tab[0, t, p] + w
+                tab[1, t, top + p] = tab[1, t, p] + m
+    pmask = np.uint64((1 << width) - 1)
+    # Chunk and offset of every window index along each axis (clamped where
+    # the volume ends), one division per axis: segs rows 0-1 (R), 4-5 (T,
+    # chunk relative to the table) and 6-7 (L).
+    for ax in range(3):
+        row = 0 if ax == 0 else 2 + 2 * ax
+        prev = np.int64(0)
+        ch = np.int64(0)
+        off = np.int64(0)
+        for q in range(n):
+            i = start[ax] + q
+            if shape[ax] > 0:
+                i = min(max(i, 0), shape[ax] - 1)
+            if q == 0:
+                ch = i // cs[ax]
+                off = i - ch * cs[ax]
+            elif i == prev + 1:
+                off += 1
+                if off == cs[ax]:
+                    off = 0
+                    ch += 1
+            prev = i
+            segs[row, q] = ch - box[ax]
+            segs[row + 1, q] = off
+    # The R indices as runs of consecutive voxels in one chunk: segs rows 8-11
+    # (chunk relative to the table, offset, length, window position).
+    nseg = 0
     for q in range(n):
-        ax = i0 + q + 0.5 - x[0]
-        ay = j0 + q + 0.5 - x[1]
-        az = k0 + q + 0.5 - x[2]
-        if abs(ax) <= radius:
-            wx[q] = math.exp(-ax * ax * inv2s2)
-        if abs(ay) <= radius:
-            wy[q] = math.exp(-ay * ay * inv2s2)
-        if abs(az) <= radius:
-            wz[q] = math.exp(-az * az * inv2s2)
-        dx[q] = ax * wx[q]
-        dy[q] = ay * wy[q]
-        dz[q] = az * wz[q]
-        sw[0] += wx[q]
-        sw[1] += wy[q]
-        sw[2] += wz[q]
+        if (nseg > 0 and segs[0, q] == segs[8, nseg - 1]
+                and segs[1, q] == segs[9, nseg - 1] + segs[10, nseg - 1]):
+            segs[10, nseg - 1] += 1
+        else:
+            segs[8, nseg] = segs[0, q]
+            segs[9, nseg] = segs[1, q]
+            segs[10, nseg] = 1
+            segs[11, nseg] = q
+            nseg += 1
+    # Ordinal of each row's T and L chunk (rows 12, 13), and the slot of
+    # every (run, T chunk, L chunk) the window touches; a chunk that is not
+    # resident stops here, before any voxel is read.
+    for ax in (1, 2):
+        row = 2 + 2 * ax
+        u = 0
+        for q in range(n):
+            if q > 0 and segs[row, q] != segs[row, q - 1]:
+                u += 1
+            segs[11 + ax, q] = u
+    nu = segs[12, n - 1] + 1
+    nv = segs[13, n - 1] + 1
+    for sg in range(nseg):
+        ta = segs[8, sg]
+        for bq in range(n):
+            if bq > 0 and segs[12, bq] == segs[12, bq - 1]:
+                continue
+            tb = segs[4, bq]
+            for cq in range(n):
+                if cq > 0 and segs[13, cq] == segs[13, cq - 1]:
+                    continue
+                tc = segs[6, cq]
+                if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
+                        or tc >= table.shape[2]):
+                    return -1.0
+                slot = table[ta, tb, tc]
+                if slot == -1:
+                    return -1.0
+                slots[sg, segs[12, bq], segs[13, cq]] = slot
+    # The window's rows along R: (b, c) for the T and L indices within radius.
+    if nseg == 1:
+        oi = segs[9, 0]
+        word = oi >> 6
+        sh = np.uint64(oi & 63)
+        two = (oi & 63) + n > 64
+        back = np.uint64(64 - (oi & 63)) if two else np.uint64(0)
+        mask = (np.uint64(1) << np.uint64(n)) - np.uint64(1)
     gx = 0.0
     gy = 0.0
     gz = 0.0
     ssum = 0.0
-    # Usually the whole window lies in one resident chunk: read the pool directly.
-    slot = -1
-    ci0, cj0, ck0 = chunk_of(cs, i0, j0, k0)
-    if (ci0 == (i0 + n - 1) // cs[0] and cj0 == (j0 + n - 1) // cs[1] and ck0 == (k0 + n - 1) // cs[2]
-            and j0 >= 0 and j0 + n <= shape[1]
-            and (shape[0] == 0 or (i0 >= 0 and i0 + n <= shape[0]))
-            and (shape[2] == 0 or (k0 >= 0 and k0 + n <= shape[2]))):
-        a_ = ci0 - box[0]
-        b_ = cj0 - box[1]
-        c_ = ck0 - box[2]
-        if (0 <= a_ < table.shape[0] and 0 <= b_ < table.shape[1] and 0 <= c_ < table.shape[2]):
-            slot = table[a_, b_, c_]
-    if slot >= 0:
-        oi0 = i0 - ci0 * cs[0]
-        oj0 = j0 - cj0 * cs[1]
-        ok0 = k0 - ck0 * cs[2]
-        for c in range(n):
-            if wz[c] == 0.0:
+    for c in range(n):
+        wz = wts[2, c]
+        if wz == 0.0:
+            continue
+        ok = segs[7, c]
+        vc = segs[13, c]
+        # Row sums over T of this L plane: Σ sdx·wy, Σ sx·dy, Σ sx·wy.
+        pa = 0.0
+        pb = 0.0
+        pc = 0.0
+        for b in range(n):
+            wy = wts[1, b]
+            if wy == 0.0:
                 continue
-            for b in range(n):
-                if wy[b] == 0.0:
+            dy = wts[4, b]
+            oj = segs[5, b]
+            ub = segs[12, b]
+            if nseg == 1:
+                slot = slots[0, ub, vc]
+                if slot < 0:  # -2: outside a finite volume, not wall
                     continue
-                sx = 0.0
-                sdx = 0.0
-                for a in range(n):
-                    if pool[slot, oi0 + a, oj0 + b, ok0 + c] == 1:
-                        sx += wx[a]
-                        sdx += dx[a]
-                gx += sdx * wy[b] * wz[c]
-                gy += sx * dy[b] * wz[c]
-                gz += sx * wy[b] * dz[c]
-                ssum += sx * wy[b] * wz[c]
-    else:
-        flag, gx, gy, gz, ssum = _window_across_chunks(pool, table, box, cs, shape, n, i0, j0, k0,
-                                                       wx, wy, wz, dx, dy, dz)
-        if flag < 0.0:
-            return -1.0
+                pat = bits[slot, ok, oj, word] >> sh
+                if two:
+                    pat |= bits[slot, ok, oj, word + 1] << back
+                pat &= mask
+            else:
+                pat = np.uint64(0)
+                for sg in range(nseg):
+                    slot = slots[sg, ub, vc]
+                    if slot >= 0:
+                        oi = segs[9, sg]
+                        ln = segs[10, sg]
+                        wq = oi >> 6
+                        shq = oi & 63
+                        v = bits[slot, ok, oj, wq] >> np.uint64(shq)
+                        if shq + ln > 64:
+                            v |= bits[slot, ok, oj, wq + 1] << np.uint64(64 - shq)
+                        v &= (np.uint64(1) << np.uint64(ln)) - np.uint64(1)
+                        pat |= v << np.uint64(segs[11, sg])
+            if pat == 0:
+                continue
+            sx = 0.0
+            sdx = 0.0
+            for t in range(parts):
+                idx = (pat >> np.uint64(t * width)) & pmask
+                sx += tab[0, t, idx]
+                sdx += tab[1, t, idx]
+            pa += sdx * wy
+            pb += sx * dy
+            pc += sx * wy
+        dz = wts[5, c]
+        gx += pa * wz
+        gy += pb * wz
+        gz += pc * dz
+        ssum += pc * wz
     W = sw[0] * sw[1] * sw[2]
     S = ssum / W
     # ∇S = (Σ χ ∇w − S ∇W) / W: the second term cancels what the finite window
     # adds, so a structure uniform along an axis has no gradient along it.
-    sd0 = 0.0
-    sd1 = 0.0
-    sd2 = 0.0
-    for q in range(n):
-        sd0 += dx[q]
-        sd1 += dy[q]
-        sd2 += dz[q]
     s2 = sigma * sigma
-    grad[0] = (gx - S * sd0 * sw[1] * sw[2]) / (W * s2)
-    grad[1] = (gy - S * sw[0] * sd1 * sw[2]) / (W * s2)
-    grad[2] = (gz - S * sw[0] * sw[1] * sd2) / (W * s2)
+    grad[0] = (gx - S * sd[0] * sw[1] * sw[2]) / (W * s2)
+    grad[1] = (gy - S * sw[0] * sd[1] * sw[2]) / (W * s2)
+    grad[2] = (gz - S * sw[0] * sw[1] * sd[2]) / (W * s2)
     return S
 
 
 @njit(cache=True, nogil=True)
-def surface_normal(pool, table, box, cs, shape, xf, d, sigma, radius, newton, out):
+def surface_normal(bits, table, box, cs, shape, xf, d, sigma, radius, newton, out, wts, tab, segs,
+                   slots):
     """Normal where the ray meets the smoothed wall surface S = 1/2 near face point xf.
 
     Up to ``newton`` Newton steps along the ray (at most NEWTON_REACH from xf)
@@ -291,12 +374,12 @@ def surface_normal(pool, table, box, cs, shape, xf, d, sigma, radius, newton, ou
     at different places get the normals of the surface they really meet.
     Returns 1 on success, 0 for a one-phase neighbourhood, -1 for a missing chunk.
     """
-    x = np.empty(3)
+    x = wts[8]
     for q in range(3):
         x[q] = xf[q]
     t = 0.0
     for it in range(newton + 1):
-        S = smoothed_wall(pool, table, box, cs, shape, x, sigma, radius, out)
+        S = smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, out, wts, tab, segs, slots)
         if S < 0.0:
             return -1
         if it == newton:
@@ -342,8 +425,8 @@ def _interface(d, nrm, medium, n_wall, n_poly, fresnel, seed, ray_id, event, new
 
 @njit(cache=True, nogil=True)
 def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
-          ray_ids, pool, table, box, cs, shape, method, step, sigma, radius, newton,
-          n_wall, n_poly, fresnel, seed, max_events):
+          ray_ids, bits, table, box, cs, shape, method, step, sigma, radius, newton,
+          n_wall, n_poly, fresnel, seed, max_events, wts, tab, segs, slots):
     """Advance every ACTIVE / paused ray as far as the resident chunks allow.
 
     Per ray: pos (3) float64, dirs (3) unit float64, medium 0/1, vox (3) int64
@@ -352,6 +435,9 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
     direction disagreed with the crossed voxel face.  ``request`` receives the chunk a
     NEEDS_CHUNK ray waits for, or (paper mode) the crossing point of a
     NEEDS_NORMAL ray, whose normal arrives in ``normals``.
+    bits, table, box : the resident chunks, bit-packed (pack_chunk), and the
+    table of their slots (ChunkCache); wts, tab, segs, slots : smoothed_wall's
+    scratch (window_scratch).
     shape : (nR, nT, nL); nR or nL = 0 means unbounded along that axis.
     """
     newd = np.empty(3)
@@ -387,88 +473,10 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                 d[q] = dirs[r, q]
                 x[q] = pos[r, q]
             if method == EXACT:
-                # Distance to the next voxel face along each axis.
-                tmin = 1e300
-                axis = -1
-                for q in range(3):
-                    if d[q] > 0.0:
-                        t = (vox[r, q] + 1 - x[q]) / d[q]
-                    elif d[q] < 0.0:
-                        t = (vox[r, q] - x[q]) / d[q]
-                    else:
-                        t = 1e300
-                    if t < tmin:
-                        tmin = t
-                        axis = q
-                sgn = 1 if d[axis] > 0.0 else -1
-                nv0 = vox[r, 0] + (sgn if axis == 0 else 0)
-                nv1 = vox[r, 1] + (sgn if axis == 1 else 0)
-                nv2 = vox[r, 2] + (sgn if axis == 2 else 0)
-                # Leaving the sample through a T face or a side.
-                if nv1 >= shape[1]:
-                    _advance(pos, r, d, tmin, path)
-                    pos[r, 1] = shape[1]
-                    status[r] = TRANSMITTED
-                    break
-                if nv1 < 0:
-                    _advance(pos, r, d, tmin, path)
-                    pos[r, 1] = 0.0
-                    status[r] = REFLECTED
-                    break
-                v = voxel_at(pool, table, box, cs, nv0, nv1, nv2)
-                if _stops(v, pos, r, d, tmin, path, status, request, cs, nv0, nv1, nv2):
-                    break
-                if v == medium[r]:
-                    _advance(pos, r, d, tmin, path)
-                    pos[r, axis] = vox[r, axis] + (1 if sgn > 0 else 0)
-                    vox[r, 0] = nv0
-                    vox[r, 1] = nv1
-                    vox[r, 2] = nv2
-                    continue
-                # An interface on the face between vox and the next voxel.
-                for q in range(3):
-                    x[q] = pos[r, q] + tmin * d[q]
-                x[axis] = vox[r, axis] + (1 if sgn > 0 else 0)
-                if n_wall == n_poly:
-                    # Index-matched: every interface is invisible, no normal needed.
-                    ok = 2
-                else:
-                    ok = surface_normal(pool, table, box, cs, shape, x, d, sigma, radius, newton, nrm)
-                if ok < 0:
-                    if not _request_neighbourhood(pool, table, box, cs, shape, x, d, radius,
-                                                  request, r):
-                        raise RuntimeError("normal window needs a chunk the request cannot name")
-                    status[r] = NEEDS_CHUNK
-                    break
-                if ok == 0:
-                    fallbacks[r, 0] += 1
-                    for q in range(3):
-                        nrm[q] = 0.0
-                    nrm[axis] = -sgn
-                if ok == 2:
-                    new_medium = 1 - medium[r]
-                    for q in range(3):
-                        newd[q] = d[q]
-                else:
-                    new_medium = _interface(d, nrm, medium[r], n_wall, n_poly, fresnel, seed,
-                                            ray_ids[r], events[r], newd)
-                events[r] += 1
-                path[r] += tmin
-                for q in range(3):
-                    pos[r, q] = x[q]
-                    dirs[r, q] = newd[q]
-                # Physics sets the direction, the voxel face the medium: a new
-                # direction through the face enters the next voxel.  With a
-                # smoothed normal the two can disagree near grazing incidence;
-                # following the face avoids bouncing on it forever.
-                forward = newd[axis] * sgn > 0.0
-                if forward != (new_medium != medium[r]):
-                    fallbacks[r, 1] += 1
-                if forward:
-                    vox[r, 0] = nv0
-                    vox[r, 1] = nv1
-                    vox[r, 2] = nv2
-                    medium[r] = v
+                _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
+                       bits, table, box, cs, shape, sigma, radius, newton, n_wall, n_poly, fresnel,
+                       seed, max_events, wts, tab, segs, slots, d, x, newd, nrm)
+                break
             else:
                 # Paper: fixed steps; a phase change between two samples is an
                 # interface at their midpoint.
@@ -485,7 +493,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                     pos[r, 1] = plane
                     status[r] = TRANSMITTED if plane > 0.0 else REFLECTED
                     break
-                v = voxel_at(pool, table, box, cs, i, j, k)
+                v = voxel_at(bits, table, box, cs, shape, i, j, k)
                 if _stops(v, pos, r, d, step, path, status, request, cs, i, j, k):
                     break
                 if v == medium[r]:
@@ -502,6 +510,167 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                 path[r] += 0.5 * step
                 status[r] = NEEDS_NORMAL
                 break
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _slot(table, box, c0, c1, c2):
+    """Table entry of chunk (c0, c1, c2): a slot, -2 outside a finite volume, -1 not resident."""
+    a = c0 - box[0]
+    b = c1 - box[1]
+    c = c2 - box[2]
+    if a < 0 or b < 0 or c < 0 or a >= table.shape[0] or b >= table.shape[1] or c >= table.shape[2]:
+        return -1
+    return table[a, b, c]
+
+
+@njit(cache=True, nogil=True)
+def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
+           bits, table, box, cs, shape, sigma, radius, newton, n_wall, n_poly, fresnel,
+           seed, max_events, wts, tab, segs, slots, d, x, newd, nrm):
+    """Exact voxel traversal of ray r until it leaves, pauses or is trapped.
+
+    A straight segment runs from pos[r] (the last interface, or the entry
+    point) along dirs[r]; vox[r] is the voxel the ray is in.  The distance to
+    each next face is computed from the segment's origin and the current
+    voxel alone, so a ray that pauses for a chunk resumes with the same
+    numbers, whatever was resident when.  pos and path change only at
+    interfaces and where the ray stops.
+    """
+    while True:
+        if events[r] >= max_events:
+            status[r] = TRAPPED
+            return
+        for q in range(3):
+            d[q] = dirs[r, q]
+            x[q] = pos[r, q]
+        v0 = vox[r, 0]
+        v1 = vox[r, 1]
+        v2 = vox[r, 2]
+        # Distance along the segment to the next face on each axis.
+        s0 = 1 if d[0] > 0.0 else -1
+        s1 = 1 if d[1] > 0.0 else -1
+        s2 = 1 if d[2] > 0.0 else -1
+        t0 = (v0 + (1 if s0 > 0 else 0) - x[0]) / d[0] if d[0] != 0.0 else 1e300
+        t1 = (v1 + (1 if s1 > 0 else 0) - x[1]) / d[1] if d[1] != 0.0 else 1e300
+        t2 = (v2 + (1 if s2 > 0 else 0) - x[2]) / d[2] if d[2] != 0.0 else 1e300
+        # The current voxel's chunk, its slot and the offsets in it.
+        c0 = v0 // cs[0]
+        c1 = v1 // cs[1]
+        c2 = v2 // cs[2]
+        o0 = v0 - c0 * cs[0]
+        o1 = v1 - c1 * cs[1]
+        o2 = v2 - c2 * cs[2]
+        slot = _slot(table, box, c0, c1, c2)
+        while True:
+            # Step into the next voxel across the nearest face (ties: lowest axis).
+            if t0 <= t1 and t0 <= t2:
+                axis = 0
+                tmin = t0
+                sgn = s0
+                v0 += s0
+                o0 += s0
+                if o0 < 0 or o0 >= cs[0]:
+                    c0 += s0
+                    o0 -= s0 * cs[0]
+                    slot = _slot(table, box, c0, c1, c2)
+            elif t1 <= t2:
+                axis = 1
+                tmin = t1
+                sgn = s1
+                v1 += s1
+                o1 += s1
+                # Leaving the sample through a T face.
+                if v1 >= shape[1] or v1 < 0:
+                    for q in range(3):
+                        pos[r, q] = x[q] + tmin * d[q]
+                    pos[r, 1] = shape[1] if v1 >= shape[1] else 0.0
+                    path[r] += tmin
+                    status[r] = TRANSMITTED if v1 >= shape[1] else REFLECTED
+                    return
+                if o1 < 0 or o1 >= cs[1]:
+                    c1 += s1
+                    o1 -= s1 * cs[1]
+                    slot = _slot(table, box, c0, c1, c2)
+            else:
+                axis = 2
+                tmin = t2
+                sgn = s2
+                v2 += s2
+                o2 += s2
+                if o2 < 0 or o2 >= cs[2]:
+                    c2 += s2
+                    o2 -= s2 * cs[2]
+                    slot = _slot(table, box, c0, c1, c2)
+            if slot == -1:
+                status[r] = _pause_for_chunk(request, r, cs, v0, v1, v2)
+                return
+            if (slot == -2 or (shape[0] > 0 and (v0 < 0 or v0 >= shape[0]))
+                    or (shape[2] > 0 and (v2 < 0 or v2 >= shape[2]))):
+                # Leaving a finite volume through a side.
+                for q in range(3):
+                    pos[r, q] = x[q] + tmin * d[q]
+                path[r] += tmin
+                status[r] = SIDE
+                return
+            v = np.uint8((bits[slot, o2, o1, o0 >> 6] >> np.uint64(o0 & 63)) & np.uint64(1))
+            if v == medium[r]:
+                vox[r, 0] = v0
+                vox[r, 1] = v1
+                vox[r, 2] = v2
+                if axis == 0:
+                    t0 = (v0 + (1 if s0 > 0 else 0) - x[0]) / d[0]
+                elif axis == 1:
+                    t1 = (v1 + (1 if s1 > 0 else 0) - x[1]) / d[1]
+                else:
+                    t2 = (v2 + (1 if s2 > 0 else 0) - x[2]) / d[2]
+                continue
+            # An interface on the face between vox[r] and voxel (v0, v1, v2).
+            face = vox[r, axis] + (1 if sgn > 0 else 0)
+            for q in range(3):
+                x[q] = x[q] + tmin * d[q]
+            x[axis] = face
+            if n_wall == n_poly:
+                # Index-matched: every interface is invisible, no normal needed.
+                ok = 2
+            else:
+                ok = surface_normal(bits, table, box, cs, shape, x, d, sigma, radius, newton, nrm,
+                                    wts, tab, segs, slots)
+            if ok < 0:
+                if not _request_neighbourhood(bits, table, box, cs, shape, x, d, radius, request, r):
+                    raise RuntimeError("normal window needs a chunk the request cannot name")
+                status[r] = NEEDS_CHUNK
+                return
+            if ok == 0:
+                fallbacks[r, 0] += 1
+                for q in range(3):
+                    nrm[q] = 0.0
+                nrm[axis] = -sgn
+            if ok == 2:
+                new_medium = 1 - medium[r]
+                for q in range(3):
+                    newd[q] = d[q]
+            else:
+                new_medium = _interface(d, nrm, medium[r], n_wall, n_poly, fresnel, seed,
+                                        ray_ids[r], events[r], newd)
+            events[r] += 1
+            path[r] += tmin
+            for q in range(3):
+                pos[r, q] = x[q]
+                dirs[r, q] = newd[q]
+            # Physics sets the direction, the voxel face the medium: a new
+            # direction through the face enters the next voxel.  With a
+            # smoothed normal the two can disagree near grazing incidence;
+            # following the face avoids bouncing on it forever.
+            forward = newd[axis] * sgn > 0.0
+            if forward != (new_medium != medium[r]):
+                fallbacks[r, 1] += 1
+            if forward:
+                vox[r, 0] = v0
+                vox[r, 1] = v1
+                vox[r, 2] = v2
+                medium[r] = v
+            break
+
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -535,13 +704,13 @@ def _advance(pos, r, d, t, path):
 
 
 @njit(cache=True, nogil=True)
-def _request_neighbourhood(pool, table, box, cs, shape, x, d, radius, request, r):
+def _request_neighbourhood(bits, table, box, cs, shape, x, d, radius, request, r):
     """Record one missing chunk that the normal at face point x may read.
 
     The box is the union of smoothed_wall's windows at both ends of the
     Newton search (x ± NEWTON_REACH·d), computed exactly as it computes them.
     """
-    n = 2 * np.int64(math.floor(radius)) + 2
+    n = window_size(radius)
     lo = np.empty(3, np.int64)
     hi = np.empty(3, np.int64)
     for q in range(3):
@@ -560,7 +729,7 @@ def _request_neighbourhood(pool, table, box, cs, shape, x, d, radius, request, r
         while True:
             k = lo[2]
             while True:
-                if voxel_at(pool, table, box, cs, i, j, k) == MISSING:
+                if voxel_at(bits, table, box, cs, shape, i, j, k) == MISSING:
                     _pause_for_chunk(request, r, cs, i, j, k)
                     return True
                 if k == hi[2]:

@@ -117,7 +117,7 @@ def load_volume(path: str | Path):
 
 
 class ChunkCache:
-    """The resident chunks: a pool array plus the lookup table the kernels read.
+    """The resident chunks, bit-packed (``bits``), and the lookup table the kernels read.
 
     Keeps at most ``capacity`` chunks, evicting the least recently requested.
     """
@@ -129,10 +129,16 @@ class ChunkCache:
         self.outside: set[tuple] = set()
         self.last_use: dict[tuple, int] = {}
         self.tick = 0
-        self.pool = np.empty((max(1, self.capacity),) + tuple(source.chunks), np.uint8)  # pages on use
+        # One bit per voxel (K.pack_chunk): 1/8 of the chunks' bytes; pages on use.
+        self.bits = np.empty((max(1, self.capacity),) + self._bits_shape, np.uint64)
         self.free = list(range(self.capacity))[::-1]
         self.loads = 0
         self._rebuild()
+
+    @property
+    def _bits_shape(self) -> tuple:
+        cR, cT, cL = self.source.chunks
+        return (cL, cT, -(-cR // 64))
 
     @property
     def chunk_shape(self) -> np.ndarray:
@@ -177,13 +183,12 @@ class ChunkCache:
             self.free.append(self.slots.pop(evictable.pop(0)))
         if len(self.free) < len(inside):
             grow = len(inside) - len(self.free)
-            extra = np.empty((grow,) + self.pool.shape[1:], np.uint8)
-            self.free.extend(range(self.pool.shape[0], self.pool.shape[0] + grow))
-            self.pool = np.concatenate([self.pool, extra])
-            self.capacity = self.pool.shape[0]
+            self.free.extend(range(self.bits.shape[0], self.bits.shape[0] + grow))
+            self.bits = np.concatenate([self.bits, np.empty((grow,) + self._bits_shape, np.uint64)])
+            self.capacity = self.bits.shape[0]
         for k in inside:
             s = self.free.pop()
-            self.pool[s] = self.source.get(k)
+            K.pack_chunk(self.source.get(k), self.bits[s])
             self.slots[k] = s
             self.loads += 1
         self._rebuild()
@@ -191,7 +196,7 @@ class ChunkCache:
     def voxels(self, lo, shape) -> np.ndarray:
         """A small box of voxels (clamped at the T faces) through the resident chunks."""
         cs = self.source.chunks
-        idx = [np.arange(l, l + n) for l, n in zip(lo, shape)]
+        idx = [np.arange(l, l + n, dtype=np.int64) for l, n in zip(lo, shape)]
         idx[1] = np.clip(idx[1], 0, self.source.shape[1] - 1)
         for a in (0, 2):
             if self.source.shape[a] > 0:
@@ -200,10 +205,6 @@ class ChunkCache:
                 for j in idx[1][[0, -1]] for k in idx[2][[0, -1]]}
         self.require(need)
         out = np.empty(shape, np.uint8)
-        for a, i in enumerate(idx[0]):
-            for b, j in enumerate(idx[1]):
-                for c, k in enumerate(idx[2]):
-                    key = (i // cs[0], j // cs[1], k // cs[2])
-                    s = self.slots[key]
-                    out[a, b, c] = self.pool[s, i - key[0] * cs[0], j - key[1] * cs[1], k - key[2] * cs[2]]
+        K.read_box(self.bits, self.table, self.box, self.chunk_shape, np.asarray(self.source.shape, np.int64),
+                   *idx, out)
         return out

@@ -58,6 +58,10 @@ class TraceSettings:
         return self
 
 
+# Bump when the kernels' numbers change for the same inputs (part of the
+# study and camera cache keys, so cached rays and images are traced again).
+TRACER_VERSION = "2"
+
 PRESETS = {
     "paper": TraceSettings(method="paper"),
     "fast": TraceSettings(method="fast", sigma_vox=1.5, radius_vox=4.5, newton=1),
@@ -215,11 +219,12 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     method = K.PAPER if settings.method == "paper" else K.EXACT
     reach = (int(math.ceil(settings.radius_vox + K.NEWTON_REACH)) + 2 if method == K.EXACT
              else settings.svm_box)
+    scratch = K.window_scratch(settings.radius_vox)
     # A ray starts in the phase of the voxel it enters; outside a finite volume it is "side".
     cache.require(map(tuple, request))
     medium = np.zeros(n, np.uint8)
     for r in range(n):
-        v = K.voxel_at(cache.pool, cache.table, cache.box, cs, vox[r, 0], 0, vox[r, 2])
+        v = K.voxel_at(cache.bits, cache.table, cache.box, cs, shape, vox[r, 0], 0, vox[r, 2])
         if v == K.OUTSIDE:
             status[r] = K.SIDE
         else:
@@ -228,10 +233,9 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
         _enter(dirs, status, np.where(medium == 1, n_wall, n_poly), float(n_outside))
     while True:
         K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
-                beam.ray_ids, cache.pool, cache.table, cache.box, cs, shape, method,
+                beam.ray_ids, cache.bits, cache.table, cache.box, cs, shape, method,
                 settings.step_vox, settings.sigma_vox, settings.radius_vox, settings.newton,
-                n_wall, n_poly,
-                settings.fresnel, np.uint64(seed), settings.max_events)
+                n_wall, n_poly, settings.fresnel, np.uint64(seed), settings.max_events, *scratch)
         waiting = np.flatnonzero(status == K.NEEDS_CHUNK)
         asking = np.flatnonzero(status == K.NEEDS_NORMAL)
         if waiting.size == 0 and asking.size == 0:
@@ -239,7 +243,7 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
         if waiting.size:
             # Keep every chunk that a live ray's normal window may read, or rays
             # near chunk borders would evict each other's chunks forever.
-            live = np.floor(pos[status >= K.NEEDS_CHUNK]).astype(np.int64)
+            live = (vox if method == K.EXACT else np.floor(pos).astype(np.int64))[status >= K.NEEDS_CHUNK]
             # The chunks each live ray's window [x - reach, x + reach] spans.
             spans = np.unique(np.hstack([(live - reach) // cs, (live + reach) // cs]), axis=0)
             keep = set()

@@ -37,6 +37,7 @@ import numpy as np
 
 from .. import __version__
 from ..microstructure.store import WoodChunkStore
+from ..optics.tracer import TRACER_VERSION
 from .spec import Scene, Study, scene_record
 
 VERSIONS = {"micro": "1", "rays": "1", "summary": "1"}
@@ -158,7 +159,8 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
         m = micros.setdefault(mkey, Micro(mkey, cache_dir / "micro" / f"{mkey}.zarr", scene))
         m.column = sorted(set(m.column) | _column(scene))
         n_t, width = beam_geometry(scene)
-        base = {"stage": "rays", "version": VERSIONS["rays"], "micro": mkey, "thickness_vox": n_t,
+        base = {"stage": "rays", "version": VERSIONS["rays"], "tracer": TRACER_VERSION, "micro": mkey,
+                "thickness_vox": n_t,
                 "n_wall": scene.n_wall, "n_poly": scene.ri_polymer,
                 "settings": dataclasses.asdict(scene.settings),
                 "beam": {"rays": scene.rays, "width_vox": width, "centre_vox": [0.0, 0.0],
