@@ -4,7 +4,7 @@ Coordinates are continuous voxel coordinates along [R, T, L]: voxel
 (i, j, k) occupies [i, i+1) × [j, j+1) × [k, k+1).  The sample spans
 T ∈ [0, nT); a ray leaving through T = nT is transmitted, through T = 0 it
 is reflected back out.  Voxels are read through a table of resident
-chunks, each held bit-packed (one bit per voxel, rows along R: pack_chunk);
+chunks, each held bit-packed (one bit per voxel, rows along L: pack_chunk);
 a ray that needs a chunk that is not resident pauses (status NEEDS_CHUNK)
 with its full state saved, so resuming it later gives bit-identical results
 whatever was resident when.
@@ -56,28 +56,26 @@ def voxel_at(bits, table, box, cs, shape, i, j, k):
         return MISSING
     if (shape[0] > 0 and (i < 0 or i >= shape[0])) or (shape[2] > 0 and (k < 0 or k >= shape[2])):
         return OUTSIDE  # in the last, partly filled chunk of a finite volume
-    oi = i - ci * cs[0]
-    return np.uint8((bits[s, k - ck * cs[2], j - cj * cs[1], oi >> 6] >> np.uint64(oi & 63)) & np.uint64(1))
+    ok = k - ck * cs[2]
+    return np.uint8((bits[s, i - ci * cs[0], j - cj * cs[1], ok >> 6] >> np.uint64(ok & 63)) & np.uint64(1))
 
 
 @njit(cache=True, nogil=True)
 def pack_chunk(chunk, out):
-    """Bit-pack a chunk [R, T, L] of 0/1 (anything but 1 is not wall) into out [L, T, word].
+    """Bit-pack a chunk [R, T, L] of 0/1 (anything but 1 is not wall) into out [R, T, word].
 
-    Bit b of word w of row (k, j) is voxel (64·w + b, j, k): a row along R
-    of a normal window is one or two word reads.
+    Bit b of word w of row (i, j) is voxel (i, j, 64·w + b): rows run along
+    L, the fibre axis, so a row of a normal window is one or two word reads
+    and usually all wall or all polymer.
     """
     nR, nT, nL = chunk.shape
-    acc = np.empty(nL, np.uint64)
-    for w in range(out.shape[2]):
+    for i in range(nR):
         for j in range(nT):
-            acc[:] = 0
-            for i in range(64 * w, min(64 * w + 64, nR)):
-                sh = np.uint64(i - 64 * w)
-                for k in range(nL):
-                    acc[k] |= np.uint64(chunk[i, j, k] == 1) << sh
-            for k in range(nL):
-                out[k, j, w] = acc[k]
+            for w in range(out.shape[2]):
+                acc = np.uint64(0)
+                for k in range(64 * w, min(64 * w + 64, nL)):
+                    acc |= np.uint64(chunk[i, j, k] == 1) << np.uint64(k - 64 * w)
+                out[i, j, w] = acc
 
 
 @njit(cache=True, nogil=True)
@@ -149,7 +147,7 @@ def _normalise(v):
 # --------------------------------------------------------------------------
 # Normal estimation: gradient of the Gaussian-smoothed wall indicator
 # --------------------------------------------------------------------------
-PART_BITS = 7  # the window's rows are summed through tables of at most 2**7 entries
+PART_BITS = 5  # a window's partial rows are summed through tables of at most 2**5 entries
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -163,69 +161,81 @@ def window_scratch(radius):
     n = int(window_size(radius))
     parts = -(-n // PART_BITS)
     width = -(-n // parts)
-    return (np.zeros((9, n)), np.zeros((2, parts, 1 << width)), np.zeros((14, n), np.int64),
+    return (np.zeros((14, max(n, 6))), np.zeros((3, parts, 1 << width)), np.zeros((14, n), np.int64),
             np.zeros((n, n, n), np.int64))
 
 
 @njit(cache=True, nogil=True)
-def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, wts, tab, segs, slots):
-    """S(x) = (G_σ * χ_wall)(x) / ΣG and its gradient direction (into ``grad``).
+def _sum_tables(wts, tab, n, width):
+    """Sum tables over the L weights (rows 2, 5, 8 of wts): entry p of part t is
+    the sum of the weights of the bits set in p (bit b = window position
+    t·width + b), built by doubling."""
+    for t in range(tab.shape[1]):
+        tab[0, t, 0] = 0.0
+        tab[1, t, 0] = 0.0
+        tab[2, t, 0] = 0.0
+        for hb in range(width):
+            q = t * width + hb
+            w = wts[2, q] if q < n else 0.0
+            m = wts[5, q] if q < n else 0.0
+            m2 = wts[8, q] if q < n else 0.0
+            top = 1 << hb
+            for p in range(top):
+                tab[0, t, top + p] = tab[0, t, p] + w
+                tab[1, t, top + p] = tab[1, t, p] + m
+                tab[2, t, top + p] = tab[2, t, p] + m2
 
+
+@njit(cache=True, nogil=True)
+def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts, tab, segs, slots):
+    """S(x) = (G_σ * χ_wall)(x) / ΣG, its gradient (into ``grad``) and Hessian.
+
+    ``hess`` receives the Hessian's RR, TT, LL, RT, RL, TL components.
     The sum runs over the voxels within ``radius`` of x with separable
     weights; indices beyond the volume are clamped (replicated border).
-    Voxels are read as rows along R from the bit-packed chunks (``bits``:
-    slot, L, T, 64-voxel word), and a row's weighted sums come from tables
-    of the window's R weights indexed by its bit pattern, a few bits at a time.
-    ``wts``, ``tab`` and ``segs`` are scratch (window_scratch).
+    Voxels are read as rows along L from the bit-packed chunks (pack_chunk).
+    Wood is nearly uniform along its fibres, so most rows are all wall or
+    all polymer and cost one word read; the others are summed through
+    tables of the window's L weights indexed by their bit pattern.
+    ``wts``, ``tab``, ``segs`` and ``slots`` are scratch (window_scratch).
     Returns S in [0, 1], or -1.0 when a needed chunk is not resident.
     """
     n = window_size(radius)
     start = (np.int64(math.ceil(x[0] - 0.5 - radius)), np.int64(math.ceil(x[1] - 0.5 - radius)),
              np.int64(math.ceil(x[2] - 0.5 - radius)))
-    # Gaussian weights w and x·w along each axis (rows 0-2 and 3-5 of wts),
-    # by the recurrence w(a + 1) = w(a) · exp(-(2a + 1) / 2σ²).
+    # Gaussian weights w, a·w and a²·w along each axis (a: voxel centre minus
+    # x; rows 0-2, 3-5, 6-8 of wts), by the recurrence
+    # w(a + 1) = w(a) · exp(-(2a + 1) / 2σ²), and their sums (rows 9-11).
     inv2s2 = 0.5 / (sigma * sigma)
     step2 = math.exp(-2.0 * inv2s2)
-    sw = wts[6]  # Σw and Σx·w per axis
-    sd = wts[7]
+    sw = wts[9]
+    sd = wts[10]
+    s2w = wts[11]
     for ax in range(3):
         a0 = start[ax] + 0.5 - x[ax]
         w = math.exp(-a0 * a0 * inv2s2)
         ratio = math.exp(-(2.0 * a0 + 1.0) * inv2s2)
         s = 0.0
         m = 0.0
+        m2 = 0.0
         for q in range(n):
             a = a0 + q
             wq = w if abs(a) <= radius else 0.0
             wts[ax, q] = wq
             wts[3 + ax, q] = a * wq
+            wts[6 + ax, q] = a * a * wq
             s += wq
             m += a * wq
+            m2 += a * a * wq
             w *= ratio
             ratio *= step2
         sw[ax] = s
         sd[ax] = m
-    # Sum tables over the R weights: entry p of part t is Σ of the weights of
-    # the bits set in p (bit b = window position t·width + b), built by doubling.
-    parts = tab.shape[1]
-    width = (n + parts - 1) // parts
-    for t in range(parts):
-        tab[0, t, 0] = 0.0
-        tab[1, t, 0] = 0.0
-        for hb in range(width):
-            q = t * width + hb
-            w = wts[0, q] if q < n else 0.0
-            m = wts[3, q] if q < n else 0.0
-            top = 1 << hb
-            for p in range(top):
-                tab[0, t, top + p] = tab[0, t, p] + w
-                tab[1, t, top + p] = tab[1, t, p] + m
-    pmask = np.uint64((1 << width) - 1)
-    # Chunk and offset of every window index along each axis (clamped where
-    # the volume ends), one division per axis: segs rows 0-1 (R), 4-5 (T,
-    # chunk relative to the table) and 6-7 (L).
+        s2w[ax] = m2
+    # Chunk (relative to the table) and offset of every window index along
+    # each axis, clamped where the volume ends, one division per axis:
+    # segs rows 0-1 (R), 2-3 (T), 4-5 (L).
     for ax in range(3):
-        row = 0 if ax == 0 else 2 + 2 * ax
         prev = np.int64(0)
         ch = np.int64(0)
         off = np.int64(0)
@@ -242,157 +252,240 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, wts, tab,
                     off = 0
                     ch += 1
             prev = i
-            segs[row, q] = ch - box[ax]
-            segs[row + 1, q] = off
-    # The R indices as runs of consecutive voxels in one chunk: segs rows 8-11
-    # (chunk relative to the table, offset, length, window position).
+            segs[2 * ax, q] = ch - box[ax]
+            segs[2 * ax + 1, q] = off
+    # The L indices as runs of consecutive voxels in one chunk: segs rows 6-9
+    # (chunk, offset, length, window position).
     nseg = 0
     for q in range(n):
-        if (nseg > 0 and segs[0, q] == segs[8, nseg - 1]
-                and segs[1, q] == segs[9, nseg - 1] + segs[10, nseg - 1]):
-            segs[10, nseg - 1] += 1
+        if (nseg > 0 and segs[4, q] == segs[6, nseg - 1]
+                and segs[5, q] == segs[7, nseg - 1] + segs[8, nseg - 1]):
+            segs[8, nseg - 1] += 1
         else:
-            segs[8, nseg] = segs[0, q]
-            segs[9, nseg] = segs[1, q]
-            segs[10, nseg] = 1
-            segs[11, nseg] = q
+            segs[6, nseg] = segs[4, q]
+            segs[7, nseg] = segs[5, q]
+            segs[8, nseg] = 1
+            segs[9, nseg] = q
             nseg += 1
-    # Ordinal of each row's T and L chunk (rows 12, 13), and the slot of
-    # every (run, T chunk, L chunk) the window touches; a chunk that is not
-    # resident stops here, before any voxel is read.
-    for ax in (1, 2):
-        row = 2 + 2 * ax
-        u = 0
+    # Ordinal of each R and T index's chunk (rows 10, 11; the first index of
+    # each ordinal in rows 12, 13), and the slot of every (L run, R chunk,
+    # T chunk) the window touches; a chunk that is not resident stops here,
+    # before any voxel is read.
+    nch = [0, 0]
+    for ax in range(2):
+        u = -1
         for q in range(n):
-            if q > 0 and segs[row, q] != segs[row, q - 1]:
+            if q == 0 or segs[2 * ax, q] != segs[2 * ax, q - 1]:
                 u += 1
-            segs[11 + ax, q] = u
-    nu = segs[12, n - 1] + 1
-    nv = segs[13, n - 1] + 1
+                segs[12 + ax, u] = q
+            segs[10 + ax, q] = u
+        nch[ax] = u + 1
     for sg in range(nseg):
-        ta = segs[8, sg]
-        for bq in range(n):
-            if bq > 0 and segs[12, bq] == segs[12, bq - 1]:
-                continue
-            tb = segs[4, bq]
-            for cq in range(n):
-                if cq > 0 and segs[13, cq] == segs[13, cq - 1]:
-                    continue
-                tc = segs[6, cq]
+        tc = segs[6, sg]
+        for ua in range(nch[0]):
+            ta = segs[0, segs[12, ua]]
+            for ub in range(nch[1]):
+                tb = segs[2, segs[13, ub]]
                 if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
                         or tc >= table.shape[2]):
                     return -1.0
                 slot = table[ta, tb, tc]
                 if slot == -1:
                     return -1.0
-                slots[sg, segs[12, bq], segs[13, cq]] = slot
-    # The window's rows along R: (b, c) for the T and L indices within radius.
+                slots[sg, ua, ub] = slot
+    # Rows that are neither all wall nor all polymer are summed through tables
+    # (_sum_tables), built when the first such row comes.
+    parts = tab.shape[1]
+    width = (n + parts - 1) // parts
+    pmask = np.uint64((1 << width) - 1)
+    tabled = False
+    full = (np.uint64(1) << np.uint64(n)) - np.uint64(1)
     if nseg == 1:
-        oi = segs[9, 0]
-        word = oi >> 6
-        sh = np.uint64(oi & 63)
-        two = (oi & 63) + n > 64
-        back = np.uint64(64 - (oi & 63)) if two else np.uint64(0)
-        mask = (np.uint64(1) << np.uint64(n)) - np.uint64(1)
-    gx = 0.0
-    gy = 0.0
-    gz = 0.0
-    ssum = 0.0
-    for c in range(n):
-        wz = wts[2, c]
-        if wz == 0.0:
+        ok = segs[7, 0]
+        word = ok >> 6
+        sh = np.uint64(ok & 63)
+        two = (ok & 63) + n > 64
+        back = np.uint64(64 - (ok & 63)) if two else np.uint64(0)
+    # Moments of the wall voxels: m0 = Σχw, m1 = Σχ a w, m2 = Σχ a aᵀ w
+    # (axes R, T, L = x, y, z), gathered over the rows (a, b) along L.
+    m0 = 0.0
+    m1x = 0.0
+    m1y = 0.0
+    m1z = 0.0
+    mxx = 0.0
+    myy = 0.0
+    mzz = 0.0
+    mxy = 0.0
+    mxz = 0.0
+    myz = 0.0
+    for a in range(n):
+        wx = wts[0, a]
+        if wx == 0.0:
             continue
-        ok = segs[7, c]
-        vc = segs[13, c]
-        # Row sums over T of this L plane: Σ sdx·wy, Σ sx·dy, Σ sx·wy.
-        pa = 0.0
-        pb = 0.0
-        pc = 0.0
+        oi = segs[1, a]
+        ua = segs[10, a]
+        # Sums over the rows of this R plane.
+        q0 = 0.0  # Σ wy·sl
+        q1 = 0.0  # Σ dy·sl
+        q2 = 0.0  # Σ wy·sdl
+        q3 = 0.0  # Σ d2y·sl
+        q4 = 0.0  # Σ wy·s2l
+        q5 = 0.0  # Σ dy·sdl
+        fw = 0.0  # Σ wy, Σ dy, Σ d2y over the all-wall rows
+        fd = 0.0
+        fd2 = 0.0
         for b in range(n):
             wy = wts[1, b]
             if wy == 0.0:
                 continue
-            dy = wts[4, b]
-            oj = segs[5, b]
-            ub = segs[12, b]
+            oj = segs[3, b]
+            ub = segs[11, b]
             if nseg == 1:
-                slot = slots[0, ub, vc]
+                slot = slots[0, ua, ub]
                 if slot < 0:  # -2: outside a finite volume, not wall
                     continue
-                pat = bits[slot, ok, oj, word] >> sh
+                pat = bits[slot, oi, oj, word] >> sh
                 if two:
-                    pat |= bits[slot, ok, oj, word + 1] << back
-                pat &= mask
+                    pat |= bits[slot, oi, oj, word + 1] << back
+                pat &= full
             else:
                 pat = np.uint64(0)
                 for sg in range(nseg):
-                    slot = slots[sg, ub, vc]
+                    slot = slots[sg, ua, ub]
                     if slot >= 0:
-                        oi = segs[9, sg]
-                        ln = segs[10, sg]
-                        wq = oi >> 6
-                        shq = oi & 63
-                        v = bits[slot, ok, oj, wq] >> np.uint64(shq)
+                        okq = segs[7, sg]
+                        ln = segs[8, sg]
+                        wq = okq >> 6
+                        shq = okq & 63
+                        v = bits[slot, oi, oj, wq] >> np.uint64(shq)
                         if shq + ln > 64:
-                            v |= bits[slot, ok, oj, wq + 1] << np.uint64(64 - shq)
+                            v |= bits[slot, oi, oj, wq + 1] << np.uint64(64 - shq)
                         v &= (np.uint64(1) << np.uint64(ln)) - np.uint64(1)
-                        pat |= v << np.uint64(segs[11, sg])
-            if pat == 0:
+                        pat |= v << np.uint64(segs[9, sg])
+            if pat == 0 or pat == full:
+                # A uniform row: all polymer or all wall (branch-free).
+                f = 1.0 if pat == full else 0.0
+                fw += f * wy
+                fd += f * wts[4, b]
+                fd2 += f * wts[7, b]
                 continue
-            sx = 0.0
-            sdx = 0.0
+            if not tabled:
+                _sum_tables(wts, tab, n, width)
+                tabled = True
+            sl = 0.0
+            sdl = 0.0
+            s2l = 0.0
             for t in range(parts):
                 idx = (pat >> np.uint64(t * width)) & pmask
-                sx += tab[0, t, idx]
-                sdx += tab[1, t, idx]
-            pa += sdx * wy
-            pb += sx * dy
-            pc += sx * wy
-        dz = wts[5, c]
-        gx += pa * wz
-        gy += pb * wz
-        gz += pc * dz
-        ssum += pc * wz
-    W = sw[0] * sw[1] * sw[2]
-    S = ssum / W
-    # ∇S = (Σ χ ∇w − S ∇W) / W: the second term cancels what the finite window
+                sl += tab[0, t, idx]
+                sdl += tab[1, t, idx]
+                s2l += tab[2, t, idx]
+            dy = wts[4, b]
+            q0 += wy * sl
+            q1 += dy * sl
+            q2 += wy * sdl
+            q3 += wts[7, b] * sl
+            q4 += wy * s2l
+            q5 += dy * sdl
+        # The all-wall rows, whose L sums are the window's (sw, sd, s2w).
+        q0 += fw * sw[2]
+        q1 += fd * sw[2]
+        q2 += fw * sd[2]
+        q3 += fd2 * sw[2]
+        q4 += fw * s2w[2]
+        q5 += fd * sd[2]
+        dx = wts[3, a]
+        m0 += wx * q0
+        m1x += dx * q0
+        m1y += wx * q1
+        m1z += wx * q2
+        mxx += wts[6, a] * q0
+        myy += wx * q3
+        mzz += wx * q4
+        mxy += dx * q1
+        mxz += dx * q2
+        myz += wx * q5
+    # The same moments of the whole window (separable), then S = N / D with
+    # N = Σχw, D = Σw, differentiated through the weights:
+    # ∇w = a w / σ², ∇∇w = (a aᵀ / σ² − I) w / σ².
+    # ∇S = (∇N − S ∇D) / D: the second term cancels what the finite window
     # adds, so a structure uniform along an axis has no gradient along it.
-    s2 = sigma * sigma
-    grad[0] = (gx - S * sd[0] * sw[1] * sw[2]) / (W * s2)
-    grad[1] = (gy - S * sw[0] * sd[1] * sw[2]) / (W * s2)
-    grad[2] = (gz - S * sw[0] * sw[1] * sd[2]) / (W * s2)
+    D = sw[0] * sw[1] * sw[2]
+    S = m0 / D
+    is2 = 1.0 / (sigma * sigma)
+    dD0 = sd[0] * sw[1] * sw[2] * is2
+    dD1 = sw[0] * sd[1] * sw[2] * is2
+    dD2 = sw[0] * sw[1] * sd[2] * is2
+    grad[0] = (m1x * is2 - S * dD0) / D
+    grad[1] = (m1y * is2 - S * dD1) / D
+    grad[2] = (m1z * is2 - S * dD2) / D
+    # H_S = (H_N − S H_D − ∇S ∇Dᵀ − ∇D ∇Sᵀ) / D
+    hN = (mxx * is2 - m0, myy * is2 - m0, mzz * is2 - m0, mxy * is2, mxz * is2, myz * is2)
+    hD = ((s2w[0] * is2 - sw[0]) * sw[1] * sw[2], sw[0] * (s2w[1] * is2 - sw[1]) * sw[2],
+          sw[0] * sw[1] * (s2w[2] * is2 - sw[2]), sd[0] * sd[1] * sw[2] * is2,
+          sd[0] * sw[1] * sd[2] * is2, sw[0] * sd[1] * sd[2] * is2)
+    gD = (dD0, dD1, dD2)
+    pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    for e in range(6):
+        p, q = pairs[e]
+        hess[e] = (hN[e] * is2 - S * hD[e] * is2 - grad[p] * gD[q] - gD[p] * grad[q]) / D
     return S
 
 
 @njit(cache=True, nogil=True)
-def surface_normal(bits, table, box, cs, shape, xf, d, sigma, radius, newton, out, wts, tab, segs,
-                   slots):
+def surface_normal(bits, table, box, cs, shape, xf, d, sigma, radius, newton, refit, out, wts, tab,
+                   segs, slots):
     """Normal where the ray meets the smoothed wall surface S = 1/2 near face point xf.
 
     Up to ``newton`` Newton steps along the ray (at most NEWTON_REACH from xf)
     move the point onto the iso-surface, so rays crossing one staircase face
     at different places get the normals of the surface they really meet.
+    The first ``refit`` steps evaluate the window again at the new point; the
+    others step on the second-order model around the last evaluation
+    (S + s ∇S·d + s² dᵀHd / 2), whose gradient ∇S + s H d is the normal.
     Returns 1 on success, 0 for a one-phase neighbourhood, -1 for a missing chunk.
     """
-    x = wts[8]
+    x = wts[12]
+    hess = wts[13]
     for q in range(3):
         x[q] = xf[q]
-    t = 0.0
-    for it in range(newton + 1):
-        S = smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, out, wts, tab, segs, slots)
-        if S < 0.0:
-            return -1
-        if it == newton:
+    S = smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, out, hess, wts, tab, segs, slots)
+    if S < 0.0:
+        return -1
+    t = 0.0  # where the point is along the ray
+    te = 0.0  # where the window was last evaluated
+    gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
+    hd0 = hess[0] * d[0] + hess[3] * d[1] + hess[4] * d[2]
+    hd1 = hess[3] * d[0] + hess[1] * d[1] + hess[5] * d[2]
+    hd2 = hess[4] * d[0] + hess[5] * d[1] + hess[2] * d[2]
+    dhd = d[0] * hd0 + d[1] * hd1 + d[2] * hd2
+    for it in range(newton):
+        u = t - te
+        val = S + u * gd + 0.5 * u * u * dhd
+        slope = gd + u * dhd
+        if abs(val - 0.5) < 1e-6 or abs(slope) < 1e-3:
             break
-        slope = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
-        if abs(S - 0.5) < 1e-6 or abs(slope) < 1e-3:
-            break
-        t_new = min(max(t - (S - 0.5) / slope, -NEWTON_REACH), NEWTON_REACH)
+        t_new = min(max(t - (val - 0.5) / slope, -NEWTON_REACH), NEWTON_REACH)
         if t_new == t:
             break
         t = t_new
-        for q in range(3):
-            x[q] = xf[q] + t * d[q]
+        if it < refit:
+            for q in range(3):
+                x[q] = xf[q] + t * d[q]
+            S = smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, out, hess, wts, tab,
+                              segs, slots)
+            if S < 0.0:
+                return -1
+            te = t
+            gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
+            hd0 = hess[0] * d[0] + hess[3] * d[1] + hess[4] * d[2]
+            hd1 = hess[3] * d[0] + hess[1] * d[1] + hess[5] * d[2]
+            hd2 = hess[4] * d[0] + hess[5] * d[1] + hess[2] * d[2]
+            dhd = d[0] * hd0 + d[1] * hd1 + d[2] * hd2
+    u = t - te
+    out[0] += u * hd0
+    out[1] += u * hd1
+    out[2] += u * hd2
     if _normalise(out) < 1e-12:
         return 0
     return 1
@@ -425,7 +518,7 @@ def _interface(d, nrm, medium, n_wall, n_poly, fresnel, seed, ray_id, event, new
 
 @njit(cache=True, nogil=True)
 def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
-          ray_ids, bits, table, box, cs, shape, method, step, sigma, radius, newton,
+          ray_ids, bits, table, box, cs, shape, method, step, sigma, radius, newton, refit,
           n_wall, n_poly, fresnel, seed, max_events, wts, tab, segs, slots):
     """Advance every ACTIVE / paused ray as far as the resident chunks allow.
 
@@ -474,8 +567,8 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                 x[q] = pos[r, q]
             if method == EXACT:
                 _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
-                       bits, table, box, cs, shape, sigma, radius, newton, n_wall, n_poly, fresnel,
-                       seed, max_events, wts, tab, segs, slots, d, x, newd, nrm)
+                       bits, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly,
+                       fresnel, seed, max_events, wts, tab, segs, slots, d, x, newd, nrm)
                 break
             else:
                 # Paper: fixed steps; a phase change between two samples is an
@@ -525,7 +618,7 @@ def _slot(table, box, c0, c1, c2):
 
 @njit(cache=True, nogil=True)
 def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
-           bits, table, box, cs, shape, sigma, radius, newton, n_wall, n_poly, fresnel,
+           bits, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly, fresnel,
            seed, max_events, wts, tab, segs, slots, d, x, newd, nrm):
     """Exact voxel traversal of ray r until it leaves, pauses or is trapped.
 
@@ -612,7 +705,7 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
                 path[r] += tmin
                 status[r] = SIDE
                 return
-            v = np.uint8((bits[slot, o2, o1, o0 >> 6] >> np.uint64(o0 & 63)) & np.uint64(1))
+            v = np.uint8((bits[slot, o0, o1, o2 >> 6] >> np.uint64(o2 & 63)) & np.uint64(1))
             if v == medium[r]:
                 vox[r, 0] = v0
                 vox[r, 1] = v1
@@ -633,8 +726,8 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
                 # Index-matched: every interface is invisible, no normal needed.
                 ok = 2
             else:
-                ok = surface_normal(bits, table, box, cs, shape, x, d, sigma, radius, newton, nrm,
-                                    wts, tab, segs, slots)
+                ok = surface_normal(bits, table, box, cs, shape, x, d, sigma, radius, newton, refit,
+                                    nrm, wts, tab, segs, slots)
             if ok < 0:
                 if not _request_neighbourhood(bits, table, box, cs, shape, x, d, radius, request, r):
                     raise RuntimeError("normal window needs a chunk the request cannot name")

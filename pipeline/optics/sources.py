@@ -138,7 +138,7 @@ class ChunkCache:
     @property
     def _bits_shape(self) -> tuple:
         cR, cT, cL = self.source.chunks
-        return (cL, cT, -(-cR // 64))
+        return (cR, cT, -(-cL // 64))
 
     @property
     def chunk_shape(self) -> np.ndarray:
