@@ -11,7 +11,7 @@ from pipeline.optics import _kernels as K
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
 from pipeline.optics.validation import rod_deflection_deg, voxelised_rod
-from pipeline.params import build_params
+from pipeline.params import ParameterError, build_params
 
 N_WALL, N_POLY = 1.50, 1.49
 M_REL = N_WALL / N_POLY
@@ -126,6 +126,14 @@ def test_bit_packed_chunks_read_back_every_voxel():
     assert np.array_equal(cache.voxels((0, 0, 0), vol.shape), vol)
     assert K.voxel_at(*view, 70, 5, 5) == K.OUTSIDE  # R chunk 2 spans 64-95, the volume ends at 70
     assert K.voxel_at(*view, 5, 5, 150) == K.OUTSIDE  # L chunk 2 spans 140-209
+
+
+def test_a_volume_with_other_values_than_0_and_1_is_refused():
+    vol = np.zeros((20, 20, 20), np.uint8)
+    vol[15, 3, 7] = 255
+    with pytest.raises(ParameterError, match=r"0 \(polymer\) and 1 \(wall\) only, got values up to 255"):
+        trace_beam(ArraySource(vol, chunks=(16, 16, 16)), square_beam(20, 9.0, (10, 10), seed=1),
+                   n_wall=N_WALL, n_poly=N_POLY)
 
 
 def test_smoothed_wall_gradient_and_hessian_are_the_derivatives_of_S():

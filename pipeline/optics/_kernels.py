@@ -62,20 +62,28 @@ def voxel_at(bits, table, box, cs, shape, i, j, k):
 
 @njit(cache=True, nogil=True)
 def pack_chunk(chunk, out):
-    """Bit-pack a chunk [R, T, L] of 0/1 (anything but 1 is not wall) into out [R, T, word].
+    """Bit-pack the voxels [R, T, L] of a chunk (1 = wall) into out [R, T, word].
 
     Bit b of word w of row (i, j) is voxel (i, j, 64·w + b): rows run along
     L, the fibre axis, so a row of a normal window is one or two word reads
-    and usually all wall or all polymer.
+    and usually all wall or all polymer.  ``chunk`` may be smaller than the
+    chunk shape (the last chunks of a finite volume): the rest reads as
+    polymer, and the kernels treat it as outside.  Returns the largest value
+    met (anything but 0 and 1 is a bad volume).
     """
     nR, nT, nL = chunk.shape
+    top = np.uint8(0)
+    out[:] = 0
     for i in range(nR):
         for j in range(nT):
             for w in range(out.shape[2]):
                 acc = np.uint64(0)
                 for k in range(64 * w, min(64 * w + 64, nL)):
-                    acc |= np.uint64(chunk[i, j, k] == 1) << np.uint64(k - 64 * w)
+                    v = chunk[i, j, k]
+                    top = max(top, v)
+                    acc |= np.uint64(v == 1) << np.uint64(k - 64 * w)
                 out[i, j, w] = acc
+    return top
 
 
 @njit(cache=True, nogil=True)

@@ -1,8 +1,9 @@
 """Where the tracer's voxels come from: user volumes and lazily generated wood.
 
-A source hands out fixed-shape chunks on request.  Voxels outside a finite
-volume read as OUTSIDE; generated wood is unbounded along R and L, so rays
-that spread sideways simply visit more chunks.
+A source hands out the voxels of a chunk on request (the last chunks of a
+finite volume are smaller; the tracer reads voxels beyond it as OUTSIDE);
+generated wood is unbounded along R and L, so rays that spread sideways
+simply visit more chunks.
 """
 
 from __future__ import annotations
@@ -41,14 +42,9 @@ class ArraySource:
         return all(0 <= i < math.ceil(s / c) for i, s, c in zip(idx, self.shape, self.chunks))
 
     def get(self, idx) -> np.ndarray:
-        out = np.full(self.chunks, K.OUTSIDE, np.uint8)
+        """The voxels of chunk ``idx``; the last chunks along an axis are smaller."""
         sl = tuple(slice(i * c, min((i + 1) * c, s)) for i, c, s in zip(idx, self.chunks, self.shape))
-        block = np.asarray(self.array[sl])
-        if block.size and block.max() > 1:
-            raise ParameterError("`volume` must hold 0 (polymer) and 1 (wall) only, "
-                                 f"got values up to {int(block.max())}")
-        out[tuple(slice(0, b) for b in block.shape)] = block
-        return out
+        return np.asarray(self.array[sl])
 
 
 class WoodSource:
@@ -79,14 +75,14 @@ class WoodSource:
         return 0 <= idx[1] < math.ceil(self.shape[1] / self.chunks[1])
 
     def get(self, idx) -> np.ndarray:
+        """The voxels of chunk ``idx``; the last chunk along T is thinner."""
         cR, cT, cL = self.chunks
         start = (idx[0] * cR, idx[1] * cT, idx[2] * cL)
         nT = min(cT, self.shape[1] - start[1])
-        out = np.full(self.chunks, K.OUTSIDE, np.uint8)
         if self.store is not None:
-            out[:, :nT, :] = self.store.get(idx)[:, :nT, :]
+            out = self.store.get(idx)[:, :nT, :]
         else:
-            out[:, :nT, :] = generate_block(self.params, self.grid, start, (cR, nT, cL), seed=self.seed)
+            out = generate_block(self.params, self.grid, start, (cR, nT, cL), seed=self.seed)
         self.generated += 1
         self.distinct.add(tuple(int(i) for i in idx))
         return out
@@ -188,7 +184,10 @@ class ChunkCache:
             self.capacity = self.bits.shape[0]
         for k in inside:
             s = self.free.pop()
-            K.pack_chunk(self.source.get(k), self.bits[s])
+            top = K.pack_chunk(np.ascontiguousarray(self.source.get(k)), self.bits[s])
+            if top > 1:
+                raise ParameterError(f"`volume` must hold 0 (polymer) and 1 (wall) only, "
+                                     f"got values up to {top}")
             self.slots[k] = s
             self.loads += 1
         self._rebuild()

@@ -240,7 +240,8 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
         K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
                 beam.ray_ids, cache.bits, cache.table, cache.box, cs, shape, method,
                 settings.step_vox, settings.sigma_vox, settings.radius_vox, settings.newton,
-                settings.refit, n_wall, n_poly, settings.fresnel, np.uint64(seed), settings.max_events, *scratch)
+                settings.refit, n_wall, n_poly, settings.fresnel, np.uint64(seed), settings.max_events,
+                *scratch)
         waiting = np.flatnonzero(status == K.NEEDS_CHUNK)
         asking = np.flatnonzero(status == K.NEEDS_NORMAL)
         if waiting.size == 0 and asking.size == 0:
