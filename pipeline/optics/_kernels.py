@@ -13,9 +13,34 @@ whatever was resident when.
 import math
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from ..microstructure._rng import uniform
+
+@intrinsic
+def prefetch(typingctx, arr, i, j, k, m):
+    """Ask the CPU to start loading the cache line of arr[i, j, k, m] (a 4-D array)."""
+    sig = types.void(arr, i, j, k, m)
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = [context.cast(builder, v, t, types.intp) for v, t in zip(args[1:], signature.args[1:])]
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, idx, wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p],
+                                              ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]))
+        # read, high locality, data cache
+        builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 3),
+                          ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
 
 # Ray status.
 ACTIVE = 0
@@ -194,6 +219,38 @@ def _sum_tables(wts, tab, n, width):
                 tab[2, t, top + p] = tab[2, t, p] + m2
 
 
+@njit(inline="always", cache=True, nogil=True)
+def _prefetch_window(bits, table, box, cs, shape, start, n):
+    """Start loading the words of a window that lies in one resident chunk.
+
+    The rows of a window are read after its weights are computed; asked for
+    here, they arrive meanwhile instead of stalling the row loop.
+    """
+    i0, j0, k0 = start
+    if i0 < 0 or j0 < 0 or j0 + n > shape[1] or (shape[0] > 0 and i0 + n > shape[0]):
+        return
+    ci = i0 // cs[0]
+    cj = j0 // cs[1]
+    ck = k0 // cs[2]
+    oi = i0 - ci * cs[0]
+    oj = j0 - cj * cs[1]
+    if oi + n > cs[0] or oj + n > cs[1]:
+        return
+    a = ci - box[0]
+    b = cj - box[1]
+    c = ck - box[2]
+    if a < 0 or b < 0 or c < 0 or a >= table.shape[0] or b >= table.shape[1] or c >= table.shape[2]:
+        return
+    slot = table[a, b, c]
+    if slot < 0:
+        return
+    word = (k0 - ck * cs[2]) >> 6
+    step = max(1, 8 // bits.shape[3])  # rows per 64-byte line
+    for q in range(n):
+        for r in range(0, n + step - 1, step):
+            prefetch(bits, slot, oi + q, oj + min(r, n - 1), word)
+
+
 @njit(cache=True, nogil=True)
 def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts, tab, segs, slots):
     """S(x) = (G_σ * χ_wall)(x) / ΣG, its gradient (into ``grad``) and Hessian.
@@ -211,6 +268,7 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
     n = window_size(radius)
     start = (np.int64(math.ceil(x[0] - 0.5 - radius)), np.int64(math.ceil(x[1] - 0.5 - radius)),
              np.int64(math.ceil(x[2] - 0.5 - radius)))
+    _prefetch_window(bits, table, box, cs, shape, start, n)
     # Gaussian weights w, a·w and a²·w along each axis (a: voxel centre minus
     # x; rows 0-2, 3-5, 6-8 of wts), by the recurrence
     # w(a + 1) = w(a) · exp(-(2a + 1) / 2σ²), and their sums (rows 9-11).
