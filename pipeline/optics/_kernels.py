@@ -320,10 +320,23 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
             prev = i
             segs[2 * ax, q] = ch - box[ax]
             segs[2 * ax + 1, q] = off
+    # The window's indices with a non-zero weight, lo[ax] to hi[ax] (its last
+    # one or two positions lie beyond the radius): only their chunks are read.
+    lo = np.zeros(3, np.int64)
+    hi = np.zeros(3, np.int64)
+    for ax in range(3):
+        q = 0
+        while q < n - 1 and wts[ax, q] == 0.0:
+            q += 1
+        lo[ax] = q
+        q = n - 1
+        while q > lo[ax] and wts[ax, q] == 0.0:
+            q -= 1
+        hi[ax] = q
     # The L indices as runs of consecutive voxels in one chunk: segs rows 6-9
     # (chunk, offset, length, window position).
     nseg = 0
-    for q in range(n):
+    for q in range(lo[2], hi[2] + 1):
         if (nseg > 0 and segs[4, q] == segs[6, nseg - 1]
                 and segs[5, q] == segs[7, nseg - 1] + segs[8, nseg - 1]):
             segs[8, nseg - 1] += 1
@@ -340,8 +353,8 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
     nch = [0, 0]
     for ax in range(2):
         u = -1
-        for q in range(n):
-            if q == 0 or segs[2 * ax, q] != segs[2 * ax, q - 1]:
+        for q in range(lo[ax], hi[ax] + 1):
+            if q == lo[ax] or segs[2 * ax, q] != segs[2 * ax, q - 1]:
                 u += 1
                 segs[12 + ax, u] = q
             segs[10 + ax, q] = u
@@ -365,13 +378,16 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
     width = (n + parts - 1) // parts
     pmask = np.uint64((1 << width) - 1)
     tabled = False
-    full = (np.uint64(1) << np.uint64(n)) - np.uint64(1)
+    full = ((np.uint64(1) << np.uint64(hi[2] + 1)) - np.uint64(1)) & ~((np.uint64(1) << np.uint64(lo[2]))
+                                                                       - np.uint64(1))
     if nseg == 1:
         ok = segs[7, 0]
         word = ok >> 6
         sh = np.uint64(ok & 63)
-        two = (ok & 63) + n > 64
+        two = (ok & 63) + segs[8, 0] > 64
         back = np.uint64(64 - (ok & 63)) if two else np.uint64(0)
+        run = (np.uint64(1) << np.uint64(segs[8, 0])) - np.uint64(1)
+        at = np.uint64(lo[2])
     # Moments of the wall voxels: m0 = Σχw, m1 = Σχ a w, m2 = Σχ a aᵀ w
     # (axes R, T, L = x, y, z), gathered over the rows (a, b) along L.
     m0 = 0.0
@@ -384,10 +400,8 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
     mxy = 0.0
     mxz = 0.0
     myz = 0.0
-    for a in range(n):
+    for a in range(lo[0], hi[0] + 1):
         wx = wts[0, a]
-        if wx == 0.0:
-            continue
         oi = segs[1, a]
         ua = segs[10, a]
         # Sums over the rows of this R plane.
@@ -400,10 +414,8 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
         fw = 0.0  # Σ wy, Σ dy, Σ d2y over the all-wall rows
         fd = 0.0
         fd2 = 0.0
-        for b in range(n):
+        for b in range(lo[1], hi[1] + 1):
             wy = wts[1, b]
-            if wy == 0.0:
-                continue
             oj = segs[3, b]
             ub = segs[11, b]
             if nseg == 1:
@@ -413,7 +425,7 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
                 pat = bits[slot, oi, oj, word] >> sh
                 if two:
                     pat |= bits[slot, oi, oj, word + 1] << back
-                pat &= full
+                pat = (pat & run) << at
             else:
                 pat = np.uint64(0)
                 for sg in range(nseg):
@@ -866,20 +878,30 @@ def _advance(pos, r, d, t, path):
 def _request_neighbourhood(bits, table, box, cs, shape, x, d, radius, request, r):
     """Record one missing chunk that the normal at face point x may read.
 
-    The box is the union of smoothed_wall's windows at both ends of the
-    Newton search (x ± NEWTON_REACH·d), computed exactly as it computes them.
+    The box is the union of smoothed_wall's windows (the voxel centres within
+    ``radius``) at both ends of the Newton search, x ± NEWTON_REACH·d; a
+    voxel more on each side is looked at only if that box lacks nothing, in
+    case rounding put a window's edge one voxel further.
     """
-    n = window_size(radius)
     lo = np.empty(3, np.int64)
     hi = np.empty(3, np.int64)
-    for q in range(3):
-        a = np.int64(math.ceil(x[q] - NEWTON_REACH * abs(d[q]) - 0.5 - radius))
-        b = np.int64(math.ceil(x[q] + NEWTON_REACH * abs(d[q]) - 0.5 - radius)) + n - 1
-        if shape[q] > 0:
-            a = min(max(a, 0), shape[q] - 1)
-            b = min(max(b, 0), shape[q] - 1)
-        lo[q] = a
-        hi[q] = b
+    for margin in range(2):
+        for q in range(3):
+            a = np.int64(math.ceil(x[q] - NEWTON_REACH * abs(d[q]) - 0.5 - radius)) - margin
+            b = np.int64(math.floor(x[q] + NEWTON_REACH * abs(d[q]) - 0.5 + radius)) + margin
+            if shape[q] > 0:
+                a = min(max(a, 0), shape[q] - 1)
+                b = min(max(b, 0), shape[q] - 1)
+            lo[q] = a
+            hi[q] = b
+        if _first_missing(bits, table, box, cs, shape, lo, hi, request, r):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _first_missing(bits, table, box, cs, shape, lo, hi, request, r):
+    """Record for ray r the first chunk of voxel box [lo, hi] that is not resident."""
     # Steps of one chunk from lo to hi (and hi itself) meet every chunk the box
     # spans, also when the window is wider than two chunks.
     i = lo[0]
