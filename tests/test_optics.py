@@ -136,6 +136,15 @@ def test_a_volume_with_other_values_than_0_and_1_is_refused():
                    n_wall=N_WALL, n_poly=N_POLY)
 
 
+@pytest.mark.parametrize("change, message", [
+    ({"refit": 4}, r"`refit` must be in \[0, newton = 3\], got 4"),
+    ({"radius_vox": 30.0}, r"`radius_vox` in \[1, 24\], got 1.75, 30.0"),
+])
+def test_trace_settings_refuse_impossible_normal_windows(change, message):
+    with pytest.raises(ParameterError, match=message):
+        settings_for("fast", **change)
+
+
 def test_smoothed_wall_gradient_and_hessian_are_the_derivatives_of_S():
     """The normal's ∇S and the Hessian its Newton model steps on are the exact
     derivatives of the windowed S (central differences, windows across chunks)."""
