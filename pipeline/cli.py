@@ -271,13 +271,13 @@ def _add_study(sub):
     p.set_defaults(func=cmd_study)
 
 
-# Environment of the local cluster's worker processes.  Dask sets glibc's
-# trim threshold to 64 KiB, which also freezes the mmap threshold at 128 KiB:
-# every chunk-sized array is then a fresh mmap whose pages fault in on first
-# touch (Table 1 at paper scale: 43 million page faults, 15 % of its CPU time
-# in the kernel).  Keep freed memory for reuse instead, up to 256 MiB.
-WORKER_ENVIRON = {"MALLOC_TRIM_THRESHOLD_": 256 << 20, "MALLOC_MMAP_THRESHOLD_": 64 << 20,
-                  "OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
+# glibc settings of the local cluster's worker processes, over Dask's own.
+# Dask sets the trim threshold to 64 KiB, which also freezes the mmap
+# threshold at 128 KiB: every chunk-sized array is then a fresh mmap whose
+# pages fault in on first touch (Table 1 at paper scale: 43 million page
+# faults, 15 % of its CPU time in the kernel).  Keep freed memory for reuse
+# instead, up to 256 MiB.
+WORKER_MALLOC = {"MALLOC_TRIM_THRESHOLD_": 256 << 20, "MALLOC_MMAP_THRESHOLD_": 64 << 20}
 
 
 def _study_client(args):
@@ -296,7 +296,8 @@ def _study_client(args):
     cores = os.cpu_count() or 1
     threads = (_int(args.threads, "threads", 1) if args.threads is not None
                else max(1, cores // workers))
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": WORKER_ENVIRON}):
+    environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True)
     return Client(cluster), cluster
 

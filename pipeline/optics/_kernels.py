@@ -694,6 +694,25 @@ def _slot(table, box, c0, c1, c2):
     return table[a, b, c]
 
 
+@njit(inline="always", cache=True, nogil=True)
+def _face_t(v, s, x, d):
+    """Distance along the ray from coordinate x to the face voxel v leaves by (direction sign s)."""
+    if d == 0.0:
+        return 1e300
+    return (v + (1 if s > 0 else 0) - x) / d
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _step(v, o, c, s, n):
+    """One voxel along an axis: the voxel index, its offset in its chunk of n, the chunk index,
+    and whether the chunk changed."""
+    v += s
+    o += s
+    if o < 0 or o >= n:
+        return v, o - s * n, c + s, True
+    return v, o, c, False
+
+
 @njit(cache=True, nogil=True)
 def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
            bits, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly, fresnel,
@@ -721,9 +740,9 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
         s0 = 1 if d[0] > 0.0 else -1
         s1 = 1 if d[1] > 0.0 else -1
         s2 = 1 if d[2] > 0.0 else -1
-        t0 = (v0 + (1 if s0 > 0 else 0) - x[0]) / d[0] if d[0] != 0.0 else 1e300
-        t1 = (v1 + (1 if s1 > 0 else 0) - x[1]) / d[1] if d[1] != 0.0 else 1e300
-        t2 = (v2 + (1 if s2 > 0 else 0) - x[2]) / d[2] if d[2] != 0.0 else 1e300
+        t0 = _face_t(v0, s0, x[0], d[0])
+        t1 = _face_t(v1, s1, x[1], d[1])
+        t2 = _face_t(v2, s2, x[2], d[2])
         # The current voxel's chunk, its slot and the offsets in it.
         c0 = v0 // cs[0]
         c1 = v1 // cs[1]
@@ -738,18 +757,14 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
                 axis = 0
                 tmin = t0
                 sgn = s0
-                v0 += s0
-                o0 += s0
-                if o0 < 0 or o0 >= cs[0]:
-                    c0 += s0
-                    o0 -= s0 * cs[0]
+                v0, o0, c0, moved = _step(v0, o0, c0, s0, cs[0])
+                if moved:
                     slot = _slot(table, box, c0, c1, c2)
             elif t1 <= t2:
                 axis = 1
                 tmin = t1
                 sgn = s1
-                v1 += s1
-                o1 += s1
+                v1, o1, c1, moved = _step(v1, o1, c1, s1, cs[1])
                 # Leaving the sample through a T face.
                 if v1 >= shape[1] or v1 < 0:
                     for q in range(3):
@@ -758,19 +773,14 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
                     path[r] += tmin
                     status[r] = TRANSMITTED if v1 >= shape[1] else REFLECTED
                     return
-                if o1 < 0 or o1 >= cs[1]:
-                    c1 += s1
-                    o1 -= s1 * cs[1]
+                if moved:
                     slot = _slot(table, box, c0, c1, c2)
             else:
                 axis = 2
                 tmin = t2
                 sgn = s2
-                v2 += s2
-                o2 += s2
-                if o2 < 0 or o2 >= cs[2]:
-                    c2 += s2
-                    o2 -= s2 * cs[2]
+                v2, o2, c2, moved = _step(v2, o2, c2, s2, cs[2])
+                if moved:
                     slot = _slot(table, box, c0, c1, c2)
             if slot == -1:
                 status[r] = _pause_for_chunk(request, r, cs, v0, v1, v2)
@@ -789,11 +799,11 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
                 vox[r, 1] = v1
                 vox[r, 2] = v2
                 if axis == 0:
-                    t0 = (v0 + (1 if s0 > 0 else 0) - x[0]) / d[0]
+                    t0 = _face_t(v0, s0, x[0], d[0])
                 elif axis == 1:
-                    t1 = (v1 + (1 if s1 > 0 else 0) - x[1]) / d[1]
+                    t1 = _face_t(v1, s1, x[1], d[1])
                 else:
-                    t2 = (v2 + (1 if s2 > 0 else 0) - x[2]) / d[2]
+                    t2 = _face_t(v2, s2, x[2], d[2])
                 continue
             # An interface on the face between vox[r] and voxel (v0, v1, v2).
             face = vox[r, axis] + (1 if sgn > 0 else 0)

@@ -186,7 +186,7 @@ class ChunkCache:
             s = self.free.pop()
             top = K.pack_chunk(np.ascontiguousarray(self.source.get(k)), self.bits[s])
             if top > 1:
-                raise ParameterError(f"`volume` must hold 0 (polymer) and 1 (wall) only, "
+                raise ParameterError("`volume` must hold 0 (polymer) and 1 (wall) only, "
                                      f"got values up to {top}")
             self.slots[k] = s
             self.loads += 1
