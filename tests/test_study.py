@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zarr
 import pytest
 import xarray as xr
 
@@ -149,6 +150,25 @@ def test_stored_chunks_equal_generated_ones_whatever_the_thickness(tmp_path):
     thick = WoodSource(params, thickness_um=100.0, seed=5, store=reread)
     assert np.array_equal(thick.get((-2, 1, 3)), WoodSource(params, thickness_um=100.0, seed=5).get((-2, 1, 3)))
     assert reread.generated == 0  # a thicker sample of the same wood reuses the chunk
+
+
+def test_chunk_files_are_the_zarr_arrays_chunks(tmp_path):
+    """The store writes chunk files itself; zarr must read them, and it must read zarr's."""
+    from pipeline.microstructure.store import OFFSET
+
+    params = build_params("birch")
+    store = WoodChunkStore(tmp_path / "w.zarr", params, seed=5, voxel_um=0.5, chunks=(16, 16, 16))
+    assert store._zstd is not None  # the direct path is the one under test
+    mine = store.get((-1, 2, 0))
+    array = zarr.open_array(tmp_path / "w.zarr" / "0", mode="r+")
+    at = (slice((OFFSET - 1) * 16, OFFSET * 16), slice(32, 48), slice(OFFSET * 16, (OFFSET + 1) * 16))
+    assert np.array_equal(array[at], mine)
+    # A chunk zarr wrote (here: a chunk of zeros, not what the wood holds) is read back as is.
+    theirs = (slice(OFFSET * 16, (OFFSET + 1) * 16), slice(0, 16), slice(OFFSET * 16, (OFFSET + 1) * 16))
+    array[theirs] = np.zeros((16, 16, 16), np.uint8)
+    again = WoodChunkStore(tmp_path / "w.zarr", params, seed=5, voxel_um=0.5, chunks=(16, 16, 16))
+    assert not again.get((0, 0, 0)).any() and again.read == 1 and again.generated == 0
+    assert not list((tmp_path / "w.zarr").rglob(".*.*"))  # no temporary files left
 
 
 def test_a_failed_cache_write_leaves_no_entry(tmp_path):

@@ -47,6 +47,45 @@ ST_NODES, ST_VOXELS, ST_DIPOLES, ST_LATTICE, ST_TILES = range(5)
 # --------------------------------------------------------------------------
 # Lattice nodes
 # --------------------------------------------------------------------------
+@njit(inline="always", cache=True, error_model="numpy")
+def _spline(L, spacing):
+    """Control index k and Catmull-Rom weights of the control values k-1 .. k+2 at L."""
+    x = L / spacing
+    k = math.floor(x)
+    f = x - k
+    f2 = f * f
+    f3 = f2 * f
+    w0 = 0.5 * (-f + 2.0 * f2 - f3)
+    w1 = 0.5 * (2.0 - 5.0 * f2 + 3.0 * f3)
+    w2 = 0.5 * (f + 4.0 * f2 - 3.0 * f3)
+    w3 = 0.5 * (f3 - f2)
+    return np.int64(k), w0, w1, w2, w3
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _controls(seed, n, m, k, out):
+    """The three control values (R, T, wall) of node (n, m) at control slice k, in [-1, 1)."""
+    out[0] = 2.0 * uniform(seed, _rng.NODE_R, n, m, k) - 1.0
+    out[1] = 2.0 * uniform(seed, _rng.NODE_T, n, m, k) - 1.0
+    out[2] = 2.0 * uniform(seed, _rng.NODE_WALL, n, m, k) - 1.0
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _node_from(M, n, m, w0, w1, w2, w3, C0, C1, C2, C3):
+    """Node position and inset from the control values C0..C3 (k-1 .. k+2) and weights."""
+    c = M[PITCH]
+    r = 0.0
+    t = 0.0
+    w = 0.0
+    for q in range(4):
+        wq = w0 if q == 0 else (w1 if q == 1 else (w2 if q == 2 else w3))
+        C = C0 if q == 0 else (C1 if q == 1 else (C2 if q == 2 else C3))
+        r += wq * C[0]
+        t += wq * C[1]
+        w += wq * C[2]
+    return n * c + M[JITTER] * c * r, m * c + M[JITTER] * c * t, M[T0] * (1.0 + M[WALLVAR] * w)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def node_state(seed, M, n, m, L):
     """Jittered position (R, T) [µm] and wall inset t [µm] of node (n, m) at L.
@@ -54,28 +93,34 @@ def node_state(seed, M, n, m, L):
     Control values every ``M[CTRL]`` µm along L are interpolated with a local
     Catmull-Rom spline, so a node at any L needs only four control values.
     """
-    c = M[PITCH]
-    amp = M[JITTER] * c
-    x = L / M[CTRL]
-    k = math.floor(x)
-    f = x - k
-    k = np.int64(k)
-    f2 = f * f
-    f3 = f2 * f
-    # Catmull-Rom weights of the control values k-1, k, k+1, k+2.
-    w0 = 0.5 * (-f + 2.0 * f2 - f3)
-    w1 = 0.5 * (2.0 - 5.0 * f2 + 3.0 * f3)
-    w2 = 0.5 * (f + 4.0 * f2 - 3.0 * f3)
-    w3 = 0.5 * (f3 - f2)
-    r = 0.0
-    t = 0.0
-    w = 0.0
+    k, w0, w1, w2, w3 = _spline(L, M[CTRL])
+    C = np.empty((4, 3))
     for q in range(4):
-        wq = w0 if q == 0 else (w1 if q == 1 else (w2 if q == 2 else w3))
-        r += wq * (2.0 * uniform(seed, _rng.NODE_R, n, m, k + q - 1) - 1.0)
-        t += wq * (2.0 * uniform(seed, _rng.NODE_T, n, m, k + q - 1) - 1.0)
-        w += wq * (2.0 * uniform(seed, _rng.NODE_WALL, n, m, k + q - 1) - 1.0)
-    return n * c + amp * r, m * c + amp * t, M[T0] * (1.0 + M[WALLVAR] * w)
+        _controls(seed, n, m, k + q - 1, C[q])
+    return _node_from(M, n, m, w0, w1, w2, w3, C[0], C[1], C[2], C[3])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def node_states(seed, M, L, n_lo, m_lo, NR, NT, Nt, CV, CF, cn, ck):
+    """:func:`node_state` of the window's nodes, their control values kept in ``CV``.
+
+    CV[n - cn, m - m_lo, k - ck] holds the control values of node (n, m) at
+    control slice k once CF (same index) is 1; the slices of one block share
+    them (control slices are tens of µm apart), so each is hashed once.
+    """
+    k, w0, w1, w2, w3 = _spline(L, M[CTRL])
+    nn, nm = NR.shape
+    for i in range(nn):
+        a = n_lo + i - cn
+        for j in range(nm):
+            for q in range(4):
+                z = k + q - 1 - ck
+                if CF[a, j, z] == 0:
+                    _controls(seed, n_lo + i, m_lo + j, k + q - 1, CV[a, j, z])
+                    CF[a, j, z] = 1
+            NR[i, j], NT[i, j], Nt[i, j] = _node_from(
+                M, n_lo + i, m_lo + j, w0, w1, w2, w3,
+                CV[a, j, k - 1 - ck], CV[a, j, k - ck], CV[a, j, k + 1 - ck], CV[a, j, k + 2 - ck])
 
 
 @njit(inline="always", cache=True, error_model="numpy")
@@ -450,7 +495,8 @@ def pull_back(patch, gi0, gj0, G, R, T):
 # One slice (fixed L in ply coordinates): tables, then the per-point phase
 # --------------------------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
-def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VIDX, rays, stats):
+def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VIDX, rays, stats,
+                CV, CF, cn, ck, ENDS_):
     """Fill the node, fibre, vessel and ray tables of one slice at L.
 
     NR, NT, Nt : node positions and wall insets on the window starting at (n_lo, m_lo).
@@ -461,16 +507,14 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VID
     VIDX : per lattice cell of the window, the first member of the vessel cluster
         whose outline may cover it, or -1.
     rays : rows (t_r, b, L0, L1, k, slot, taper) of ray groups active at L.
+    CV, CF, cn, ck : the block's control values (see :func:`node_states`).
+    ENDS_ : per centre (index as CV's) the fibre cell (lo, hi) along L last found;
+        it holds for every L in [lo, hi), so slices inside it reuse it.
     Returns the number of active ray rows.
     """
     c = M[PITCH]
     nn, nm = NR.shape
-    for i in range(nn):
-        for j in range(nm):
-            r, t, w = node_state(seed, M, n_lo + i, m_lo + j, L)
-            NR[i, j] = r
-            NT[i, j] = t
-            Nt[i, j] = w
+    node_states(seed, M, L, n_lo, m_lo, NR, NT, Nt, CV, CF, cn, ck)
     stats[ST_NODES] += nn * nm
     push = M[PUSH] * M[SCALE]
     polygon = M[SHAPE] == 1.0
@@ -485,10 +529,16 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VID
             if _member_of(vessels, nv, n, m):
                 flag = 2
             elif M[ENDS] != 0.0:
-                ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
-                lo, hi = chain_interval(L, seed, _rng.FIBRE_END, n, m, ph, M[FLEN], M[FLEN_SD],
-                                        min(50.0, 0.5 * M[FLEN]))
-                stats[ST_LATTICE] += 1
+                a = n - cn
+                lo = ENDS_[a, j, 0]
+                hi = ENDS_[a, j, 1]
+                if not (lo <= L < hi):  # also when not looked up yet (NaN)
+                    ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
+                    lo, hi = chain_interval(L, seed, _rng.FIBRE_END, n, m, ph, M[FLEN], M[FLEN_SD],
+                                            min(50.0, 0.5 * M[FLEN]))
+                    ENDS_[a, j, 0] = lo
+                    ENDS_[a, j, 1] = hi
+                    stats[ST_LATTICE] += 1
                 if L - lo < plate or hi - L < plate:
                     flag = 1
             if polygon:
@@ -746,9 +796,9 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
                 qT[nq] = pT
                 nq += 1
             else:
-                out[k, i, j] = _fibre_phase(pR, sT, inv_c, n_lo, m_lo, FE)
+                out[i, j, k] = _fibre_phase(pR, sT, inv_c, n_lo, m_lo, FE)
         for q in range(nq):
-            out[k, i, qj[q]] = point_phase(seed, M, qR[q], qT[q], L, n_lo, m_lo, FE, FF, Nt,
+            out[i, qj[q], k] = point_phase(seed, M, qR[q], qT[q], L, n_lo, m_lo, FE, FF, Nt,
                                            vessels, nv, VG, VIDX, rays, nr)
 
 
@@ -758,14 +808,14 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
 @njit(cache=True, nogil=True, error_model="numpy")
 def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0, gj0, dmax,
                vessels, nv, stats):
-    """Fill ``out[L, R, T]`` for T indices [j_lo, j_hi) of the block from one ply.
+    """Fill ``out[R, T, L]`` for T indices [j_lo, j_hi) of the block from one ply.
 
     ply : (cos θ, sin θ, ΔR, ΔT, ΔL), the rotation of the ply in the L-R plane and
     its offset.  Ply coordinates: R' = cos·R + sin·L + ΔR, T' = T + ΔT,
     L' = −sin·R + cos·L + ΔL.  An unrotated ply is evaluated slice by slice at the
     exact L; a rotated one on the global L' lattice of spacing voxel/2.
     """
-    nL, nR, nT = out.shape
+    nR, nT, nL = out.shape
     cs, sn, oR, oT, oL = ply[0], ply[1], ply[2], ply[3], ply[4]
     c = M[PITCH]
     G = c / GRID_PER_PITCH
@@ -804,6 +854,16 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
     nm = m_hi - m_lo + 1
     VG = np.empty((max(nv, 1), 4))
     rays = np.empty((64, 7))
+    # Control values and fibre cells shared by the slices (see build_slice); their
+    # window spans every slice's node window.
+    cn = np.int64(math.floor((Rp.min() - dmax - 1.0) / c)) - 4
+    cn_hi = np.int64(math.ceil((Rp.max() + dmax + 1.0) / c)) + 4
+    l_lo, l_hi = Lp.min() - q, Lp.max() + q  # a rotated ply's slices sit on the L' lattice
+    ck = np.int64(math.floor(l_lo / M[CTRL])) - 1
+    nk = np.int64(math.floor(l_hi / M[CTRL])) + 3 - ck
+    CV = np.empty((cn_hi - cn + 1, nm, nk, 3))
+    CF = np.zeros((cn_hi - cn + 1, nm, nk), np.uint8)
+    ENDS_ = np.full((cn_hi - cn + 1, nm, 2), np.nan)
     start = 0
     total = nR * nL
     while start < total:
@@ -832,7 +892,7 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
         FF = np.ones((nn, nm), np.uint8)
         VIDX = np.empty((nn, nm), np.int64)
         nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VIDX, rays,
-                         stats)
+                         stats, CV, CF, cn, ck, ENDS_)
         _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0,
                      gj0, G, seed, M, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr)
         stats[ST_VOXELS] += (stop - start) * (j_hi - j_lo)

@@ -147,7 +147,7 @@ def generate_block(
     org = np.asarray(grid.origin_um, dtype=np.float64)
     gstart = np.asarray(start, dtype=np.int64)
     nR, nT, nL = shape
-    buf = np.empty((nL, nR, nT), np.uint8)
+    buf = np.empty((nR, nT, nL), np.uint8)
     lo = org + gstart * v
     hi = org + (gstart + np.asarray(shape)) * v
     t_centres = org[1] + (gstart[1] + np.arange(nT) + 0.5) * v
@@ -175,4 +175,4 @@ def generate_block(
         K.fill_block(buf, pseed, M, gstart, org, v, j_lo, j_hi,
                      np.array([cs, sn, oR, oT, oL]), patch, gi0, gj0, dmax,
                      vessels[:max(nv, 1)], nv, stats)
-    return np.ascontiguousarray(buf.transpose(1, 2, 0))
+    return buf

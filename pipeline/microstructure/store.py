@@ -11,8 +11,14 @@ reads the first chunks of a thicker one.
 On disk the chunks live in one Zarr v3 array (OME-Zarr metadata, like
 :class:`~pipeline.microstructure.volume.WoodVolume`) whose nominal extent is
 ±``OFFSET`` chunks around the origin along R and L; only chunks that were
-generated exist as files, and zarr writes each file atomically.  Chunks
-outside the nominal extent are generated but not stored.  In memory, a
+generated exist as files, each written atomically (a temporary file renamed
+into place).  Chunks outside the nominal extent are generated but not stored.
+
+Chunk files are read and written directly, with the array's own codecs
+(bytes, then Zstandard) called synchronously: through ``zarr.Array``'s
+asynchronous machinery a 64³ chunk cost 3.3 ms of CPU to write against
+0.2 ms this way, a third of the time it takes to generate it.  Arrays with
+other codecs or key encodings (not made by this class) go through zarr.  In memory, a
 process-wide LRU keeps recently used chunks, and one lock per chunk makes
 threads of one process wait for a chunk another thread is generating rather
 than generate it twice.
@@ -23,11 +29,14 @@ from __future__ import annotations
 import os
 import shutil
 import threading
+import uuid
 from collections import OrderedDict
 from pathlib import Path
 
+import numcodecs
 import numpy as np
 import zarr
+from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
 from ..params import Grid, WoodParams
@@ -103,6 +112,7 @@ class WoodChunkStore:
         if not (self.path / ARRAY / "zarr.json").exists():
             self._create()
         self._array = zarr.open_array(self.path / ARRAY, mode="r+")
+        self._zstd = _direct_codec(self._array)
 
     def _create(self) -> None:
         cR, cT, cL = self.chunks
@@ -137,10 +147,38 @@ class WoodChunkStore:
             return d
         return None
 
+    def _file(self, d) -> Path:
+        return self.path / ARRAY / "c" / str(d[0]) / str(d[1]) / str(d[2])
+
     def stored(self, idx) -> bool:
         """Whether chunk ``idx`` is on disk."""
         d = self._disk_index(idx)
-        return d is not None and (self.path / ARRAY / "c" / str(d[0]) / str(d[1]) / str(d[2])).exists()
+        return d is not None and self._file(d).exists()
+
+    def _read(self, d):
+        """Chunk at disk index ``d``, or None when it is not stored."""
+        if self._zstd is None:
+            data = self._array[tuple(slice(i * c, (i + 1) * c) for i, c in zip(d, self.chunks))]
+            return None if data.flat[0] == NOT_GENERATED else data
+        try:
+            raw = self._file(d).read_bytes()
+        except FileNotFoundError:
+            return None
+        return np.frombuffer(self._zstd.decode(raw), np.uint8).reshape(self.chunks)
+
+    def _write(self, d, data: np.ndarray) -> None:
+        if self._zstd is None:
+            self._array[tuple(slice(i * c, (i + 1) * c) for i, c in zip(d, self.chunks))] = data
+            return
+        path = self._file(d)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}")
+        try:
+            tmp.write_bytes(self._zstd.encode(np.ascontiguousarray(data)))
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
     def get(self, idx) -> np.ndarray:
         """Chunk ``idx`` (R, T, L chunk indices; T >= 0), read-only, shape ``chunks``."""
@@ -154,18 +192,31 @@ class WoodChunkStore:
             if data is not None:
                 return data
             d = self._disk_index(idx)
-            sl = None
             if d is not None:
-                sl = tuple(slice(i * c, (i + 1) * c) for i, c in zip(d, self.chunks))
-                if self.stored(idx):
-                    data = self._array[sl]
-                    self.read += 1
-            if data is None or data.flat[0] == NOT_GENERATED:
+                data = self._read(d)
+                self.read += data is not None
+            if data is None:
                 start = tuple(i * c for i, c in zip(idx, self.chunks))
                 data = generate_block(self.params, self.grid, start, self.chunks, seed=self.seed)
                 self.generated += 1
-                if sl is not None:
-                    self._array[sl] = data
+                if d is not None:
+                    self._write(d, data)
             data.setflags(write=False)
             _remember(key, data)
         return data
+
+
+def _direct_codec(array: zarr.Array):
+    """The Zstandard codec of ``array`` when its chunks can be read and written as plain files.
+
+    That is: uint8 chunks serialised as raw bytes then Zstandard-compressed,
+    stored one file per chunk under ``c/i/j/k``.  None for anything else.
+    """
+    meta = array.metadata
+    codecs = getattr(meta, "codecs", ())
+    key_encoding = getattr(meta, "chunk_key_encoding", None)
+    if (array.dtype != np.uint8 or len(codecs) != 2 or not isinstance(codecs[0], BytesCodec)
+            or not isinstance(codecs[1], ZstdCodec) or getattr(key_encoding, "name", None) != "default"
+            or getattr(key_encoding, "separator", None) != "/"):
+        return None
+    return numcodecs.Zstd(level=codecs[1].level, checksum=codecs[1].checksum)
