@@ -234,6 +234,8 @@ def ray_cell_phase(seed, M, pR, pT, L, t_r, b, L0, L1, k, g, memo):
     if aT <= 0.0 or aL <= 0.0:
         return WALL
     Lc = L0 + off + (ell + 0.5) * h
+    if abs(pT - Tc) >= aT:  # then (dT)² >= 1 exactly
+        return WALL
     dT = (pT - Tc) / aT
     dL = (L - Lc) / aL
     if dT * dT + dL * dL >= 1.0:
@@ -629,6 +631,9 @@ def _vessel_phase(pR, pT, VG, vessels, nv, first, wall):
     """-1 outside the vessel cluster starting at member ``first``, else the phase there."""
     inside = False
     for v in range(first, first + vessels[first, 4]):
+        # |x| >= a > 0 gives (x / a)² >= 1 exactly: skip the divisions.
+        if abs(pR - VG[v, 0]) >= VG[v, 2] or abs(pT - VG[v, 1]) >= VG[v, 3]:
+            continue
         dR = (pR - VG[v, 0]) / VG[v, 2]
         dT = (pT - VG[v, 1]) / VG[v, 3]
         if dR * dR + dT * dT >= 1.0:
@@ -637,6 +642,8 @@ def _vessel_phase(pR, pT, VG, vessels, nv, first, wall):
         aR = VG[v, 2] - wall
         aT = VG[v, 3] - wall
         if aR <= 0.0 or aT <= 0.0:
+            continue
+        if abs(pR - VG[v, 0]) >= aR or abs(pT - VG[v, 1]) >= aT:
             continue
         dR = (pR - VG[v, 0]) / aR
         dT = (pT - VG[v, 1]) / aT
@@ -678,16 +685,21 @@ def _squeeze_and_classify(pT, c, W2, lam, rays, nr):
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
 def _fibre_phase(pR, pT, inv_c, n_lo, m_lo, FE):
-    """Phase in the fibre lattice (ellipse lumens), branch-free.
+    """Phase in the fibre lattice (ellipse lumens), branch-free."""
+    return _fibre_phase_at(pR, pT, np.int64(math.floor(pR * inv_c)),
+                           np.int64(math.floor(pT * inv_c)), n_lo, m_lo, FE)
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def _fibre_phase_at(pR, pT, n_fl, w_fl, n_lo, m_lo, FE):
+    """:func:`_fibre_phase` given the lattice cell (floor(pR/c), floor(pT/c)) of the point.
 
     Lumens of row m = 2j reach |w - m| < 2 nodes, so only rows 2·j0 and
-    2·j0 + 2 (j0 = floor(w/2)) and, in each, the two centres bracketing u
-    can contain the point.  Closed lumens carry a huge bias in FE[..., 4].
+    2·j0 + 2 (j0 = floor(w/2) = floor(w) >> 1) and, in each, the two centres
+    bracketing u can contain the point.  Closed lumens carry a huge bias in
+    FE[..., 4].
     """
-    u = pR * inv_c
-    w = pT * inv_c
-    j0 = np.int64(math.floor(w * 0.5))
-    n_fl = np.int64(math.floor(u))
+    j0 = w_fl >> 1
     qmin = 1e300
     for dj in range(2):
         j = j0 + dj
@@ -805,10 +817,11 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
                 pR = P1[i, j, 0]
                 pT = P1[i, j, 1]
             sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
+            n_fl = np.int64(math.floor(pR * inv_c))
+            w_fl = np.int64(math.floor(sT * inv_c))
             special = r >= 0 or polygon
             if not special and nv > 0:
-                special = VIDX[np.int64(math.floor(pR * inv_c)) - n_lo,
-                               np.int64(math.floor(sT * inv_c)) - m_lo] >= 0
+                special = VIDX[n_fl - n_lo, w_fl - m_lo] >= 0
             if special:
                 qj[nq] = j
                 qR[nq] = pR
@@ -816,7 +829,7 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
                 qr[nq] = r
                 nq += 1
             else:
-                out[i, j, k] = _fibre_phase(pR, sT, inv_c, n_lo, m_lo, FE)
+                out[i, j, k] = _fibre_phase_at(pR, sT, n_fl, w_fl, n_lo, m_lo, FE)
         for q in range(nq):
             out[i, qj[q], k] = point_phase(seed, M, qR[q], qT[q], qr[q], L, n_lo, m_lo, FE, FF, Nt,
                                            vessels, nv, VG, VIDX, rays, memo)
