@@ -152,6 +152,34 @@ def test_stored_chunks_equal_generated_ones_whatever_the_thickness(tmp_path):
     assert reread.generated == 0  # a thicker sample of the same wood reuses the chunk
 
 
+def test_get_many_makes_free_chunks_while_another_thread_holds_one(tmp_path):
+    import threading
+
+    from pipeline.microstructure import store as store_module
+
+    params = build_params("birch")
+    store = WoodChunkStore(tmp_path / "w.zarr", params, seed=5, voxel_um=0.5, chunks=(16, 16, 16))
+    held = store_module._lock_for((str(store.path), (0, 0, 0)))
+    held.acquire()  # another thread is "generating" chunk (0, 0, 0)
+    result = {}
+    worker = threading.Thread(target=lambda: result.update(store.get_many([(0, 0, 0), (1, 0, 0)])))
+    worker.start()
+    try:
+        for _ in range(500):  # the free chunk is made without waiting for the held one
+            if store.stored((1, 0, 0)):
+                break
+            worker.join(0.01)
+        assert store.stored((1, 0, 0)) and not store.stored((0, 0, 0)) and worker.is_alive()
+    finally:
+        held.release()
+    worker.join(30)
+    plain = WoodSource(params, thickness_um=64.0, seed=5, chunks=(16, 16, 16))
+    assert sorted(result) == [(0, 0, 0), (1, 0, 0)]
+    for idx in result:
+        assert np.array_equal(result[idx], plain.get(idx))
+    assert store.generated == 2
+
+
 def test_chunk_files_are_the_zarr_arrays_chunks(tmp_path):
     """The store writes chunk files itself; zarr must read them, and it must read zarr's."""
     from pipeline.microstructure.store import OFFSET

@@ -188,21 +188,54 @@ class WoodChunkStore:
         if data is not None:
             return data
         with _lock_for(key):
+            return self._fetch(idx, key)
+
+    def get_many(self, indices) -> dict:
+        """:meth:`get` of several chunks, those no other thread is making first.
+
+        A chunk that another thread of this process is generating is waited
+        for only after every other one is done, so that threads needing
+        overlapping chunks (neighbouring camera rows, shards of one beam) work
+        side by side instead of queueing on one chunk.
+        """
+        out = {}
+        busy = []
+        for idx in indices:
+            idx = tuple(int(i) for i in idx)
+            key = (str(self.path), idx)
             data = _recall(key)
             if data is not None:
-                return data
-            d = self._disk_index(idx)
+                out[idx] = data
+                continue
+            lock = _lock_for(key)
+            if not lock.acquire(blocking=False):
+                busy.append(idx)
+                continue
+            try:
+                out[idx] = self._fetch(idx, key)
+            finally:
+                lock.release()
+        for idx in busy:
+            out[idx] = self.get(idx)
+        return out
+
+    def _fetch(self, idx, key) -> np.ndarray:
+        """Chunk ``idx`` from memory, disk or the generator; the caller holds its lock."""
+        data = _recall(key)
+        if data is not None:
+            return data
+        d = self._disk_index(idx)
+        if d is not None:
+            data = self._read(d)
+            self.read += data is not None
+        if data is None:
+            start = tuple(i * c for i, c in zip(idx, self.chunks))
+            data = generate_block(self.params, self.grid, start, self.chunks, seed=self.seed)
+            self.generated += 1
             if d is not None:
-                data = self._read(d)
-                self.read += data is not None
-            if data is None:
-                start = tuple(i * c for i, c in zip(idx, self.chunks))
-                data = generate_block(self.params, self.grid, start, self.chunks, seed=self.seed)
-                self.generated += 1
-                if d is not None:
-                    self._write(d, data)
-            data.setflags(write=False)
-            _remember(key, data)
+                self._write(d, data)
+        data.setflags(write=False)
+        _remember(key, data)
         return data
 
 

@@ -76,15 +76,20 @@ class WoodSource:
 
     def get(self, idx) -> np.ndarray:
         """The voxels of chunk ``idx``; the last chunk along T is thinner."""
+        return self.get_many([idx])[tuple(int(i) for i in idx)]
+
+    def get_many(self, indices) -> dict:
+        """{idx: voxels} of several chunks (through the store's :meth:`get_many`)."""
+        indices = [tuple(int(i) for i in idx) for idx in indices]
         cR, cT, cL = self.chunks
-        start = (idx[0] * cR, idx[1] * cT, idx[2] * cL)
-        nT = min(cT, self.shape[1] - start[1])
+        thick = {idx: min(cT, self.shape[1] - idx[1] * cT) for idx in indices}
         if self.store is not None:
-            out = self.store.get(idx)[:, :nT, :]
+            out = {idx: data[:, :thick[idx], :] for idx, data in self.store.get_many(indices).items()}
         else:
-            out = generate_block(self.params, self.grid, start, (cR, nT, cL), seed=self.seed)
-        self.generated += 1
-        self.distinct.add(tuple(int(i) for i in idx))
+            out = {idx: generate_block(self.params, self.grid, (idx[0] * cR, idx[1] * cT, idx[2] * cL),
+                                       (cR, thick[idx], cL), seed=self.seed) for idx in indices}
+        self.generated += len(indices)
+        self.distinct.update(indices)
         return out
 
 
@@ -182,9 +187,13 @@ class ChunkCache:
             self.free.extend(range(self.bits.shape[0], self.bits.shape[0] + grow))
             self.bits = np.concatenate([self.bits, np.empty((grow,) + self._bits_shape, np.uint64)])
             self.capacity = self.bits.shape[0]
+        if hasattr(self.source, "get_many"):
+            chunks = self.source.get_many(inside)
+        else:
+            chunks = {k: self.source.get(k) for k in inside}
         for k in inside:
             s = self.free.pop()
-            top = K.pack_chunk(np.ascontiguousarray(self.source.get(k)), self.bits[s])
+            top = K.pack_chunk(np.ascontiguousarray(chunks.pop(k)), self.bits[s])
             if top > 1:
                 raise ParameterError("`volume` must hold 0 (polymer) and 1 (wall) only, "
                                      f"got values up to {top}")
