@@ -46,6 +46,9 @@ class ArraySource:
         sl = tuple(slice(i * c, min((i + 1) * c, s)) for i, c, s in zip(idx, self.chunks, self.shape))
         return np.asarray(self.array[sl])
 
+    def get_many(self, indices) -> dict:
+        return {tuple(int(i) for i in idx): self.get(idx) for idx in indices}
+
 
 class WoodSource:
     """Generated wood of a given thickness along T, unbounded along R and L.
@@ -187,10 +190,7 @@ class ChunkCache:
             self.free.extend(range(self.bits.shape[0], self.bits.shape[0] + grow))
             self.bits = np.concatenate([self.bits, np.empty((grow,) + self._bits_shape, np.uint64)])
             self.capacity = self.bits.shape[0]
-        if hasattr(self.source, "get_many"):
-            chunks = self.source.get_many(inside)
-        else:
-            chunks = {k: self.source.get(k) for k in inside}
+        chunks = self.source.get_many(inside)
         for k in inside:
             s = self.free.pop()
             top = K.pack_chunk(np.ascontiguousarray(chunks.pop(k)), self.bits[s])
