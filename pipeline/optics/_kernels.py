@@ -85,7 +85,6 @@ def voxel_at(bits, table, box, cs, shape, i, j, k):
     return np.uint8((bits[s, i - ci * cs[0], j - cj * cs[1], ok >> 6] >> np.uint64(ok & 63)) & np.uint64(1))
 
 
-@njit(cache=True, nogil=True)
 def pack_chunk(chunk, out):
     """Bit-pack the voxels [R, T, L] of a chunk (1 = wall) into out [R, T, word].
 
@@ -93,22 +92,41 @@ def pack_chunk(chunk, out):
     L, the fibre axis, so a row of a normal window is one or two word reads
     and usually all wall or all polymer.  ``chunk`` may be smaller than the
     chunk shape (the last chunks of a finite volume): the rest reads as
-    polymer, and the kernels treat it as outside.  Returns the largest value
-    met (anything but 0 and 1 is a bad volume).
+    polymer, and the kernels treat it as outside.  Returns False if a voxel
+    is neither 0 nor 1 (``out`` is then not a packing of the chunk).
     """
+    if chunk.dtype != np.uint8:
+        if chunk.dtype != np.bool_ and np.any((chunk != 0) & (chunk != 1)):
+            return False
+        chunk = chunk.astype(np.uint8)
+    return _pack_bits(chunk, out) <= 1
+
+
+@njit(cache=True, nogil=True)
+def _pack_bits(chunk, out):
+    """pack_chunk of a uint8 chunk, in one pass; returns the OR of all voxels (> 1: a bad value)."""
     nR, nT, nL = chunk.shape
-    top = np.uint8(0)
-    out[:] = 0
+    if nR < out.shape[0] or nT < out.shape[1] or nL < 64 * out.shape[2]:
+        out[:] = 0
+    seen = np.uint8(0)
     for i in range(nR):
         for j in range(nT):
             for w in range(out.shape[2]):
+                k0 = 64 * w
                 acc = np.uint64(0)
-                for k in range(64 * w, min(64 * w + 64, nL)):
-                    v = chunk[i, j, k]
-                    top = max(top, v)
-                    acc |= np.uint64(v == 1) << np.uint64(k - 64 * w)
+                for k in range(min(64, nL - k0)):
+                    v = chunk[i, j, k0 + k]
+                    seen |= v
+                    acc |= np.uint64(v & np.uint8(1)) << np.uint64(k)
                 out[i, j, w] = acc
-    return top
+    return seen
+
+
+@njit(cache=True, nogil=True)
+def phases_at(bits, table, box, cs, shape, vox, out):
+    """out[r] = voxel_at(vox[r]): the phase each ray starts in (or MISSING, OUTSIDE)."""
+    for r in range(vox.shape[0]):
+        out[r] = voxel_at(bits, table, box, cs, shape, vox[r, 0], vox[r, 1], vox[r, 2])
 
 
 @njit(cache=True, nogil=True)
@@ -194,7 +212,7 @@ def window_scratch(radius):
     n = int(window_size(radius))
     parts = -(-n // PART_BITS)
     width = -(-n // parts)
-    return (np.zeros((14, max(n, 6))), np.zeros((3, parts, 1 << width)), np.zeros((14, n), np.int64),
+    return (np.zeros((14, max(n, 6))), np.zeros((3, parts, 1 << width)), np.zeros((18, max(n, 3)), np.int64),
             np.zeros((n, n, n), np.int64))
 
 
@@ -322,8 +340,8 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
             segs[2 * ax + 1, q] = off
     # The window's indices with a non-zero weight, lo[ax] to hi[ax] (its last
     # one or two positions lie beyond the radius): only their chunks are read.
-    lo = np.zeros(3, np.int64)
-    hi = np.zeros(3, np.int64)
+    lo = segs[14]
+    hi = segs[15]
     for ax in range(3):
         q = 0
         while q < n - 1 and wts[ax, q] == 0.0:
@@ -350,7 +368,8 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
     # each ordinal in rows 12, 13), and the slot of every (L run, R chunk,
     # T chunk) the window touches; a chunk that is not resident stops here,
     # before any voxel is read.
-    nch = [0, 0]
+    nch0 = 0
+    nch1 = 0
     for ax in range(2):
         u = -1
         for q in range(lo[ax], hi[ax] + 1):
@@ -358,12 +377,15 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
                 u += 1
                 segs[12 + ax, u] = q
             segs[10 + ax, q] = u
-        nch[ax] = u + 1
+        if ax == 0:
+            nch0 = u + 1
+        else:
+            nch1 = u + 1
     for sg in range(nseg):
         tc = segs[6, sg]
-        for ua in range(nch[0]):
+        for ua in range(nch0):
             ta = segs[0, segs[12, ua]]
-            for ub in range(nch[1]):
+            for ub in range(nch1):
                 tb = segs[2, segs[13, ub]]
                 if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
                         or tc >= table.shape[2]):
@@ -400,6 +422,10 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
     mxy = 0.0
     mxz = 0.0
     myz = 0.0
+    # Common case: one L run and the window's T rows consecutive (not clamped)
+    # in one chunk, so the rows of an R plane follow each other in one slot.
+    simple = nseg == 1 and nch1 == 1 and segs[3, hi[1]] - segs[3, lo[1]] == hi[1] - lo[1]
+    oj0 = segs[3, lo[1]] - lo[1]
     for a in range(lo[0], hi[0] + 1):
         wx = wts[0, a]
         oi = segs[1, a]
@@ -414,20 +440,28 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
         fw = 0.0  # Σ wy, Σ dy, Σ d2y over the all-wall rows
         fd = 0.0
         fd2 = 0.0
+        nmix = 0
+        if simple:
+            slot = slots[0, ua, 0]
+            if slot < 0:  # -2: outside a finite volume, not wall
+                continue
         for b in range(lo[1], hi[1] + 1):
-            wy = wts[1, b]
-            oj = segs[3, b]
-            ub = segs[11, b]
             if nseg == 1:
-                slot = slots[0, ua, ub]
-                if slot < 0:  # -2: outside a finite volume, not wall
-                    continue
+                if simple:
+                    oj = oj0 + b
+                else:
+                    slot = slots[0, ua, segs[11, b]]
+                    if slot < 0:
+                        continue
+                    oj = segs[3, b]
                 pat = bits[slot, oi, oj, word] >> sh
                 if two:
                     pat |= bits[slot, oi, oj, word + 1] << back
                 pat = (pat & run) << at
             else:
                 pat = np.uint64(0)
+                oj = segs[3, b]
+                ub = segs[11, b]
                 for sg in range(nseg):
                     slot = slots[sg, ua, ub]
                     if slot >= 0:
@@ -440,31 +474,41 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
                             v |= bits[slot, oi, oj, wq + 1] << np.uint64(64 - shq)
                         v &= (np.uint64(1) << np.uint64(ln)) - np.uint64(1)
                         pat |= v << np.uint64(segs[9, sg])
-            if pat == 0 or pat == full:
-                # A uniform row: all polymer or all wall (branch-free).
-                f = 1.0 if pat == full else 0.0
-                fw += f * wy
-                fd += f * wts[4, b]
-                fd2 += f * wts[7, b]
+            if pat == 0:
                 continue
+            if pat == full:
+                # An all-wall row: its L sums are the window's, added per plane below.
+                fw += wts[1, b]
+                fd += wts[4, b]
+                fd2 += wts[7, b]
+                continue
+            # A mixed row (rare): summed below, out of this loop.
+            segs[16, nmix] = b
+            segs[17, nmix] = np.int64(pat)
+            nmix += 1
+        if nmix:
             if not tabled:
                 _sum_tables(wts, tab, n, width)
                 tabled = True
-            sl = 0.0
-            sdl = 0.0
-            s2l = 0.0
-            for t in range(parts):
-                idx = (pat >> np.uint64(t * width)) & pmask
-                sl += tab[0, t, idx]
-                sdl += tab[1, t, idx]
-                s2l += tab[2, t, idx]
-            dy = wts[4, b]
-            q0 += wy * sl
-            q1 += dy * sl
-            q2 += wy * sdl
-            q3 += wts[7, b] * sl
-            q4 += wy * s2l
-            q5 += dy * sdl
+            for e in range(nmix):
+                b = segs[16, e]
+                pat = np.uint64(segs[17, e])
+                sl = 0.0
+                sdl = 0.0
+                s2l = 0.0
+                for t in range(parts):
+                    idx = (pat >> np.uint64(t * width)) & pmask
+                    sl += tab[0, t, idx]
+                    sdl += tab[1, t, idx]
+                    s2l += tab[2, t, idx]
+                wy = wts[1, b]
+                dy = wts[4, b]
+                q0 += wy * sl
+                q1 += dy * sl
+                q2 += wy * sdl
+                q3 += wts[7, b] * sl
+                q4 += wy * s2l
+                q5 += dy * sdl
         # The all-wall rows, whose L sums are the window's (sw, sd, s2w).
         q0 += fw * sw[2]
         q1 += fd * sw[2]

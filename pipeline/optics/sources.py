@@ -193,10 +193,11 @@ class ChunkCache:
         chunks = self.source.get_many(inside)
         for k in inside:
             s = self.free.pop()
-            top = K.pack_chunk(np.ascontiguousarray(chunks.pop(k)), self.bits[s])
-            if top > 1:
-                raise ParameterError("`volume` must hold 0 (polymer) and 1 (wall) only, "
-                                     f"got values up to {top}")
+            chunk = np.asarray(chunks.pop(k))
+            if not K.pack_chunk(chunk, self.bits[s]):
+                bad = chunk[(chunk != 0) & (chunk != 1)]
+                got = f"values up to {bad.max()}" if bad.max() > 1 else f"the value {bad.min()}"
+                raise ParameterError(f"`volume` must hold 0 (polymer) and 1 (wall) only, got {got}")
             self.slots[k] = s
             self.loads += 1
         self._rebuild()

@@ -8,6 +8,7 @@ transmitted, reflected back out, out through a side, or trapped.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, replace
 
@@ -166,6 +167,35 @@ def _svm_normal(box: np.ndarray, centre: np.ndarray, lo: np.ndarray) -> tuple[np
     return w / norm, True
 
 
+def _unique_rows(idx: np.ndarray) -> np.ndarray:
+    """The distinct rows of an (N, 3) integer array, sorted (np.unique(axis=0), but fast)."""
+    if len(idx) == 0:
+        return idx.reshape(0, 3)
+    lo = idx.min(axis=0)
+    ext = idx.max(axis=0) - lo + 1
+    rel = idx - lo
+    key = np.unique((rel[:, 0] * ext[1] + rel[:, 1]) * ext[2] + rel[:, 2])
+    out = np.empty((key.size, 3), np.int64)
+    out[:, 2] = key % ext[2]
+    key //= ext[2]
+    out[:, 1] = key % ext[1]
+    out[:, 0] = key // ext[1]
+    return out + lo
+
+
+def _chunks_of_boxes(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The distinct chunks (rows) of the boxes of chunks [lo, hi] (inclusive, (N, 3) each),
+    leaving out those before the entrance face (T < 0)."""
+    lo = lo.copy()
+    lo[:, 1] = np.maximum(lo[:, 1], 0)
+    span = (hi - lo).max(axis=0, initial=0)
+    parts = []
+    for d in itertools.product(*(range(int(s) + 1) for s in span)):
+        c = lo + np.asarray(d)
+        parts.append(c[np.all(c <= hi, axis=1)])
+    return _unique_rows(np.concatenate(parts) if parts else lo)
+
+
 def _enter(dirs: np.ndarray, status: np.ndarray, n_in: np.ndarray, n_out: float) -> None:
     """Refract directions (in place) through the T = 0 face from index n_out into n_in."""
     tang = dirs[:, [0, 2]] * (n_out / n_in)[:, None]
@@ -228,12 +258,9 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     # A ray starts in the phase of the voxel it enters; outside a finite volume it is "side".
     cache.require(map(tuple, request))
     medium = np.zeros(n, np.uint8)
-    for r in range(n):
-        v = K.voxel_at(cache.bits, cache.table, cache.box, cs, shape, vox[r, 0], 0, vox[r, 2])
-        if v == K.OUTSIDE:
-            status[r] = K.SIDE
-        else:
-            medium[r] = v
+    K.phases_at(cache.bits, cache.table, cache.box, cs, shape, vox, medium)
+    status[medium == K.OUTSIDE] = K.SIDE
+    medium[medium == K.OUTSIDE] = 0
     if n_outside is not None:
         _enter(dirs, status, np.where(medium == 1, n_wall, n_poly), float(n_outside))
     while True:
@@ -251,12 +278,8 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
             # near chunk borders would evict each other's chunks forever.
             live = (vox if method == K.EXACT else np.floor(pos).astype(np.int64))[status >= K.NEEDS_CHUNK]
             # The chunks each live ray's window [x - reach, x + reach] spans.
-            spans = np.unique(np.hstack([(live - reach) // cs, (live + reach) // cs]), axis=0)
-            keep = set()
-            for lo0, lo1, lo2, hi0, hi1, hi2 in spans.tolist():
-                keep.update((a, b, c) for a in range(lo0, hi0 + 1) for b in range(max(lo1, 0), hi1 + 1)
-                            for c in range(lo2, hi2 + 1))
-            cache.require(np.unique(request[waiting], axis=0).tolist(), keep=keep)
+            keep = map(tuple, _chunks_of_boxes((live - reach) // cs, (live + reach) // cs).tolist())
+            cache.require(_unique_rows(request[waiting]).tolist(), keep=set(keep))
         half = settings.svm_box // 2
         for r in asking:
             centre = pos[r]
