@@ -136,6 +136,58 @@ def test_a_volume_with_other_values_than_0_and_1_is_refused():
                    n_wall=N_WALL, n_poly=N_POLY)
 
 
+@pytest.mark.parametrize("dtype", [bool, np.int16, np.float32])
+def test_volumes_of_other_dtypes_trace_like_uint8(dtype):
+    vol = (np.random.default_rng(2).random((40, 30, 40)) < 0.3).astype(np.uint8)
+    beam = square_beam(50, 20.0, (20, 20), seed=1)
+    ref = trace_beam(ArraySource(vol, chunks=(16, 16, 16)), beam, n_wall=N_WALL, n_poly=N_POLY)
+    got = trace_beam(ArraySource(vol.astype(dtype), chunks=(16, 16, 16)), beam, n_wall=N_WALL,
+                     n_poly=N_POLY)
+    assert np.array_equal(got.exit_direction, ref.exit_direction)
+    assert np.array_equal(got.status, ref.status)
+
+
+@pytest.mark.parametrize("bad, message", [(0.5, "got the value 0.5"), (-1, "got the value -1"),
+                                          (3, "got values up to 3")])
+def test_a_volume_value_that_is_neither_0_nor_1_is_named(bad, message):
+    vol = np.zeros((20, 20, 20), np.float32 if bad == 0.5 else np.int16)
+    vol[4, 3, 7] = bad
+    with pytest.raises(ParameterError, match=message):
+        trace_beam(ArraySource(vol, chunks=(16, 16, 16)), square_beam(20, 9.0, (10, 10), seed=1),
+                   n_wall=N_WALL, n_poly=N_POLY)
+
+
+def test_the_normal_window_is_the_same_whatever_the_chunking():
+    """smoothed_wall reads a window inside one chunk by a shorter path than one
+    across chunks or clamped at the faces; both must give the same numbers, bit for bit."""
+    rng = np.random.default_rng(4)
+    vol = (ndimage.gaussian_filter(rng.random((48, 40, 48)), 2.0) > 0.5).astype(np.uint8)
+    views = [resident(vol, chunks)[1] for chunks in [(48, 40, 48), (16, 24, 20), (20, 13, 64)]]
+    scratch = K.window_scratch(5.25)
+    pts = np.column_stack([rng.uniform(-2, 50, 300), rng.uniform(-2, 42, 300), rng.uniform(-2, 50, 300)])
+    for x in pts:
+        out = []
+        for view in views:
+            g, h = np.empty(3), np.empty(6)
+            s = K.smoothed_wall(*view, x, 1.75, 5.25, g, h, *scratch)
+            out.append(np.concatenate([[s], g, h]))
+        assert np.array_equal(out[0], out[1]) and np.array_equal(out[0], out[2]), x
+
+
+def test_chunk_sets_of_live_rays_are_exact():
+    from pipeline.optics.tracer import _chunks_of_boxes, _unique_rows
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        lo = rng.integers(-5, 5, (rng.integers(1, 40), 3))
+        hi = lo + rng.integers(0, 3, lo.shape)
+        want = {(a, b, c) for (l0, l1, l2), (h0, h1, h2) in zip(lo.tolist(), hi.tolist())
+                for a in range(l0, h0 + 1) for b in range(max(l1, 0), h1 + 1) for c in range(l2, h2 + 1)}
+        got = _chunks_of_boxes(lo, hi).tolist()
+        assert len(got) == len(want) and set(map(tuple, got)) == want
+        assert np.array_equal(_unique_rows(lo), np.unique(lo, axis=0))
+
+
 @pytest.mark.parametrize("change, message", [
     ({"refit": 4}, r"`refit` must be in \[0, newton = 3\], got 4"),
     ({"radius_vox": 30.0}, r"`radius_vox` in \[1, 24\], got 1.75, 30.0"),
