@@ -208,7 +208,12 @@ def window_size(radius):
 
 
 def window_scratch(radius):
-    """Scratch arrays of smoothed_wall for a window radius (allocated once per trace)."""
+    """Scratch arrays of smoothed_wall for a window radius (allocated once per trace).
+
+    wts: weights and moments; tab: sum tables of partial rows; segs: per-axis
+    chunk and offset tables (rows 0-13), the window's index bounds (14, 15)
+    and the mixed rows of an R plane (16, 17); slots: the chunks it reads.
+    """
     n = int(window_size(radius))
     parts = -(-n // PART_BITS)
     width = -(-n // parts)
