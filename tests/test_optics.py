@@ -118,6 +118,27 @@ def resident(vol, chunks):
     return cache, (cache.bits, cache.table, cache.box, cache.chunk_shape, np.asarray(vol.shape, np.int64))
 
 
+def window_view(cache, view, masks=None):
+    """The arguments of smoothed_wall before the point: the view with the chunks' row masks."""
+    return (view[0], cache.masks if masks is None else masks) + view[1:]
+
+
+def test_row_masks_name_exactly_the_all_wall_and_all_polymer_rows():
+    rng = np.random.default_rng(5)
+    vol = (rng.random((40, 70, 150)) < 0.5).astype(np.uint8)
+    vol[:, ::3, :] = 1  # whole rows of wall and of polymer, and some with one voxel changed
+    vol[:, 1::3, :] = 0
+    vol[rng.integers(0, 40, 200), rng.integers(0, 70, 200), rng.integers(0, 150, 200)] ^= 1
+    cache, _ = resident(vol, (16, 70, 72))  # rows of 72 voxels: two words, the second partly used
+    for key, s in cache.slots.items():
+        sl = tuple(slice(k * c, (k + 1) * c) for k, c in zip(key, cache.source.chunks))
+        chunk = vol[sl]
+        bits = np.unpackbits(cache.masks[s].view(np.uint8), axis=-1, bitorder="little")[:, :, :70]
+        full = chunk.shape[2] == 72 and chunk.all(axis=2)  # a partial chunk's rows are never "all wall"
+        assert np.array_equal(bits[: chunk.shape[0], 0, : chunk.shape[1]].astype(bool), full & np.ones_like(chunk[:, :, 0], bool))
+        assert np.array_equal(bits[: chunk.shape[0], 1, : chunk.shape[1]].astype(bool), ~chunk.any(axis=2))
+
+
 def test_bit_packed_chunks_read_back_every_voxel():
     """Chunks are held one bit per voxel in rows along L: rows of 70 voxels take
     two words, last chunks are partly filled, and voxels there read as outside."""
@@ -181,7 +202,9 @@ def test_the_normal_window_is_the_same_whatever_the_chunking():
     across chunks or clamped at the faces; both must give the same numbers, bit for bit."""
     rng = np.random.default_rng(4)
     vol = (ndimage.gaussian_filter(rng.random((48, 40, 48)), 2.0) > 0.5).astype(np.uint8)
-    views = [resident(vol, chunks)[1] for chunks in [(48, 40, 48), (16, 24, 20), (20, 13, 64)]]
+    views = [window_view(*resident(vol, chunks)) for chunks in [(48, 40, 48), (16, 24, 20), (20, 13, 64)]]
+    # Row masks saying nothing: every row is read.
+    views.append(window_view(*resident(vol, (48, 40, 48)), masks=np.zeros((1, 48, 2, 1), np.uint64)))
     scratch = K.window_scratch(5.25)
     pts = np.column_stack([rng.uniform(-2, 50, 300), rng.uniform(-2, 42, 300), rng.uniform(-2, 50, 300)])
     for x in pts:
@@ -190,7 +213,7 @@ def test_the_normal_window_is_the_same_whatever_the_chunking():
             g, h = np.empty(3), np.empty(6)
             s = K.smoothed_wall(*view, x, 1.75, 5.25, g, h, *scratch)
             out.append(np.concatenate([[s], g, h]))
-        assert np.array_equal(out[0], out[1]) and np.array_equal(out[0], out[2]), x
+        assert all(np.array_equal(out[0], o) for o in out[1:]), x
 
 
 def test_chunk_sets_of_live_rays_are_exact():
@@ -221,7 +244,7 @@ def test_smoothed_wall_gradient_and_hessian_are_the_derivatives_of_S():
     derivatives of the windowed S (central differences, windows across chunks)."""
     rng = np.random.default_rng(3)
     vol = (ndimage.gaussian_filter(rng.random((40, 40, 40)), 2.5) > 0.5).astype(np.uint8)
-    _, view = resident(vol, (16, 24, 20))
+    view = window_view(*resident(vol, (16, 24, 20)))
     scratch = K.window_scratch(6.0)
 
     def S(x):

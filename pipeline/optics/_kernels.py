@@ -42,6 +42,19 @@ def prefetch(typingctx, arr, i, j, k, m):
     return sig, codegen
 
 
+@intrinsic
+def cttz(typingctx, x):
+    """The number of trailing zero bits of a non-zero uint64."""
+    sig = types.uint64(types.uint64)
+
+    def codegen(context, builder, signature, args):
+        i64 = ir.IntType(64)
+        fn = builder.module.declare_intrinsic("llvm.cttz", [i64], ir.FunctionType(i64, [i64, ir.IntType(1)]))
+        return builder.call(fn, [args[0], ir.Constant(ir.IntType(1), 1)])
+
+    return sig, codegen
+
+
 # Ray status.
 ACTIVE = 0
 TRANSMITTED = 1
@@ -131,6 +144,36 @@ def _pack_words(words, out):
                     acc |= ((x * _GATHER) >> np.uint64(56)) << np.uint64(8 * b)
                 out[i, j, w] = acc
     return (seen & ~_LOW_BITS) == 0
+
+
+@njit(cache=True, nogil=True)
+def row_masks(bits, n_l, out):
+    """Which L rows of a packed chunk are all wall or all polymer, as bits along T.
+
+    out[i, 0, w] bit b: row (i, 64·w + b) is all wall over the chunk's ``n_l``
+    voxels; out[i, 1, w]: all polymer.  The normal window skips such rows, or
+    adds their weights without reading them.  The padding of a partial chunk
+    reads as polymer, so its rows are never all wall.
+    """
+    nT = bits.shape[1]
+    nw = bits.shape[2]
+    tail = n_l - 64 * (nw - 1)
+    last = np.uint64(0xFFFFFFFFFFFFFFFF) if tail >= 64 else (np.uint64(1) << np.uint64(tail)) - np.uint64(1)
+    for i in range(bits.shape[0]):
+        for w in range(out.shape[2]):
+            out[i, 0, w] = 0
+            out[i, 1, w] = 0
+        for j in range(nT):
+            full = (bits[i, j, nw - 1] & last) == last
+            empty = bits[i, j, nw - 1] == 0
+            for q in range(nw - 1):
+                full = full and bits[i, j, q] == np.uint64(0xFFFFFFFFFFFFFFFF)
+                empty = empty and bits[i, j, q] == 0
+            bit = np.uint64(1) << np.uint64(j & 63)
+            if full:
+                out[i, 0, j >> 6] |= bit
+            if empty:
+                out[i, 1, j >> 6] |= bit
 
 
 @njit(cache=True, nogil=True)
@@ -274,8 +317,8 @@ def _sum_tables(wts, tab, n, width):
 
 
 @njit(inline="always", cache=True, nogil=True)
-def _prefetch_window(bits, table, box, cs, shape, start, n):
-    """Start loading the words of a window that lies in one resident chunk.
+def _prefetch_window(bits, masks, table, box, cs, shape, start, n):
+    """Start loading the words and row masks of a window that lies in one resident chunk.
 
     The rows of a window are read after its weights are computed; asked for
     here, they arrive meanwhile instead of stalling the row loop.
@@ -298,6 +341,9 @@ def _prefetch_window(bits, table, box, cs, shape, start, n):
     slot = table[a, b, c]
     if slot < 0:
         return
+    mstep = max(1, 4 // masks.shape[3])  # R planes per 64-byte line of row masks
+    for q in range(0, n + mstep - 1, mstep):
+        prefetch(masks, slot, oi + min(q, n - 1), 0, 0)
     word = (k0 - ck * cs[2]) >> 6
     step = max(1, 8 // bits.shape[3])  # rows per 64-byte line
     for q in range(n):
@@ -306,7 +352,7 @@ def _prefetch_window(bits, table, box, cs, shape, start, n):
 
 
 @njit(cache=True, nogil=True)
-def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts, tab, segs, slots):
+def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, hess, wts, tab, segs, slots):
     """S(x) = (G_σ * χ_wall)(x) / ΣG, its gradient (into ``grad``) and Hessian.
 
     ``hess`` receives the Hessian's RR, TT, LL, RT, RL, TL components.
@@ -314,15 +360,17 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
     weights; indices beyond the volume are clamped (replicated border).
     Voxels are read as rows along L from the bit-packed chunks (pack_chunk).
     Wood is nearly uniform along its fibres, so most rows are all wall or
-    all polymer and cost one word read; the others are summed through
-    tables of the window's L weights indexed by their bit pattern.
+    all polymer: the chunks' row ``masks`` (row_masks) name many of them
+    without a read, the others cost one word read, and the few mixed ones
+    are summed through tables of the window's L weights indexed by their
+    bit pattern.
     ``wts``, ``tab``, ``segs`` and ``slots`` are scratch (window_scratch).
     Returns S in [0, 1], or -1.0 when a needed chunk is not resident.
     """
     n = window_size(radius)
     start = (np.int64(math.ceil(x[0] - 0.5 - radius)), np.int64(math.ceil(x[1] - 0.5 - radius)),
              np.int64(math.ceil(x[2] - 0.5 - radius)))
-    _prefetch_window(bits, table, box, cs, shape, start, n)
+    _prefetch_window(bits, masks, table, box, cs, shape, start, n)
     # Gaussian weights w, a·w and a²·w along each axis (a: voxel centre minus
     # x; rows 0-2, 3-5, 6-8 of wts), by the recurrence
     # w(a + 1) = w(a) · exp(-(2a + 1) / 2σ²), and their sums (rows 9-11).
@@ -462,6 +510,11 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
     # in one chunk, so the rows of an R plane follow each other in one slot.
     simple = nseg == 1 and nch1 == 1 and segs[3, hi[1]] - segs[3, lo[1]] == hi[1] - lo[1]
     oj0 = segs[3, lo[1]] - lo[1]
+    rows_all = (np.uint64(1) << np.uint64(hi[1] - lo[1] + 1)) - np.uint64(1)
+    mword = segs[3, lo[1]] >> 6
+    msh = np.uint64(segs[3, lo[1]] & 63)
+    mtwo = (segs[3, lo[1]] & 63) + hi[1] - lo[1] + 1 > 64
+    mback = np.uint64(64 - (segs[3, lo[1]] & 63)) if mtwo else np.uint64(0)
     for a in range(lo[0], hi[0] + 1):
         wx = wts[0, a]
         oi = segs[1, a]
@@ -477,11 +530,31 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
         fd = 0.0
         fd2 = 0.0
         nmix = 0
+        # The rows to visit, as bits b - lo[1]; in the common case the chunk's
+        # row masks tell which are all polymer (skipped) or all wall over the
+        # chunk (added unread), so only the others are read.
+        todo = rows_all
+        known = np.uint64(0)
         if simple:
             slot = slots[0, ua, 0]
             if slot < 0:  # -2: outside a finite volume, not wall
                 continue
-        for b in range(lo[1], hi[1] + 1):
+            known = masks[slot, oi, 0, mword] >> msh
+            poly = masks[slot, oi, 1, mword] >> msh
+            if mtwo:
+                known |= masks[slot, oi, 0, mword + 1] << mback
+                poly |= masks[slot, oi, 1, mword + 1] << mback
+            todo &= ~poly
+            known &= todo
+        while todo:
+            tz = cttz(todo)
+            todo &= todo - np.uint64(1)
+            b = lo[1] + np.int64(tz)
+            if (known >> tz) & np.uint64(1):
+                fw += wts[1, b]
+                fd += wts[4, b]
+                fd2 += wts[7, b]
+                continue
             if nseg == 1:
                 if simple:
                     oj = oj0 + b
@@ -591,7 +664,7 @@ def smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, grad, hess, wts
 
 
 @njit(cache=True, nogil=True)
-def surface_normal(bits, table, box, cs, shape, xf, d, sigma, radius, newton, refit, out, wts, tab,
+def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, newton, refit, out, wts, tab,
                    segs, slots):
     """Normal where the ray meets the smoothed wall surface S = 1/2 near face point xf.
 
@@ -607,7 +680,7 @@ def surface_normal(bits, table, box, cs, shape, xf, d, sigma, radius, newton, re
     hess = wts[13]
     for q in range(3):
         x[q] = xf[q]
-    S = smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, out, hess, wts, tab, segs, slots)
+    S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, tab, segs, slots)
     if S < 0.0:
         return -1
     t = 0.0  # where the point is along the ray
@@ -630,7 +703,7 @@ def surface_normal(bits, table, box, cs, shape, xf, d, sigma, radius, newton, re
         if it < refit:
             for q in range(3):
                 x[q] = xf[q] + t * d[q]
-            S = smoothed_wall(bits, table, box, cs, shape, x, sigma, radius, out, hess, wts, tab,
+            S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, tab,
                               segs, slots)
             if S < 0.0:
                 return -1
@@ -676,7 +749,7 @@ def _interface(d, nrm, medium, n_wall, n_poly, fresnel, seed, ray_id, event, new
 
 @njit(cache=True, nogil=True)
 def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
-          ray_ids, bits, table, box, cs, shape, method, step, sigma, radius, newton, refit,
+          ray_ids, bits, masks, table, box, cs, shape, method, step, sigma, radius, newton, refit,
           n_wall, n_poly, fresnel, seed, max_events, wts, tab, segs, slots):
     """Advance every ACTIVE / paused ray as far as the resident chunks allow.
 
@@ -686,8 +759,9 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
     direction disagreed with the crossed voxel face.  ``request`` receives the chunk a
     NEEDS_CHUNK ray waits for, or (paper mode) the crossing point of a
     NEEDS_NORMAL ray, whose normal arrives in ``normals``.
-    bits, table, box : the resident chunks, bit-packed (pack_chunk), and the
-    table of their slots (ChunkCache); wts, tab, segs, slots : smoothed_wall's
+    bits, masks, table, box : the resident chunks, bit-packed (pack_chunk), their
+    row masks (row_masks) and the table of their slots (ChunkCache);
+    wts, tab, segs, slots : smoothed_wall's
     scratch (window_scratch).
     shape : (nR, nT, nL); nR or nL = 0 means unbounded along that axis.
     """
@@ -725,7 +799,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
                 x[q] = pos[r, q]
             if method == EXACT:
                 _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
-                       bits, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly,
+                       bits, masks, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly,
                        fresnel, seed, max_events, wts, tab, segs, slots, d, x, newd, nrm)
                 break
             else:
@@ -795,7 +869,7 @@ def _step(v, o, c, s, n):
 
 @njit(cache=True, nogil=True)
 def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
-           bits, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly, fresnel,
+           bits, masks, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly, fresnel,
            seed, max_events, wts, tab, segs, slots, d, x, newd, nrm):
     """Exact voxel traversal of ray r until it leaves, pauses or is trapped.
 
@@ -894,7 +968,7 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
                 # Index-matched: every interface is invisible, no normal needed.
                 ok = 2
             else:
-                ok = surface_normal(bits, table, box, cs, shape, x, d, sigma, radius, newton, refit,
+                ok = surface_normal(bits, masks, table, box, cs, shape, x, d, sigma, radius, newton, refit,
                                     nrm, wts, tab, segs, slots)
             if ok < 0:
                 if not _request_neighbourhood(bits, table, box, cs, shape, x, d, radius, request, r):

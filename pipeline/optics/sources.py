@@ -135,6 +135,8 @@ class ChunkCache:
         self.tick = 0
         # One bit per voxel (K.pack_chunk): 1/8 of the chunks' bytes; pages on use.
         self.bits = np.empty((max(1, self.capacity),) + self._bits_shape, np.uint64)
+        # Per slot and R index, the all-wall and all-polymer L rows as bits along T (K.row_masks).
+        self.masks = np.empty((max(1, self.capacity),) + self._masks_shape, np.uint64)
         self.free = list(range(self.capacity))[::-1]
         self.loads = 0
         self._rebuild()
@@ -143,6 +145,11 @@ class ChunkCache:
     def _bits_shape(self) -> tuple:
         cR, cT, cL = self.source.chunks
         return (cR, cT, -(-cL // 64))
+
+    @property
+    def _masks_shape(self) -> tuple:
+        cR, cT, cL = self.source.chunks
+        return (cR, 2, -(-cT // 64))
 
     @property
     def chunk_shape(self) -> np.ndarray:
@@ -189,6 +196,7 @@ class ChunkCache:
             grow = len(inside) - len(self.free)
             self.free.extend(range(self.bits.shape[0], self.bits.shape[0] + grow))
             self.bits = np.concatenate([self.bits, np.empty((grow,) + self._bits_shape, np.uint64)])
+            self.masks = np.concatenate([self.masks, np.empty((grow,) + self._masks_shape, np.uint64)])
             self.capacity = self.bits.shape[0]
         chunks = self.source.get_many(inside)
         for k in inside:
@@ -198,6 +206,7 @@ class ChunkCache:
                 bad = chunk[(chunk != 0) & (chunk != 1)]
                 got = f"values up to {bad.max()}" if bad.max() > 1 else f"the value {bad.min()}"
                 raise ParameterError(f"`volume` must hold 0 (polymer) and 1 (wall) only, got {got}")
+            K.row_masks(self.bits[s], self.source.chunks[2], self.masks[s])
             self.slots[k] = s
             self.loads += 1
         self._rebuild()

@@ -265,7 +265,7 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
         _enter(dirs, status, np.where(medium == 1, n_wall, n_poly), float(n_outside))
     while True:
         K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
-                beam.ray_ids, cache.bits, cache.table, cache.box, cs, shape, method,
+                beam.ray_ids, cache.bits, cache.masks, cache.table, cache.box, cs, shape, method,
                 settings.step_vox, settings.sigma_vox, settings.radius_vox, settings.newton,
                 settings.refit, n_wall, n_poly, settings.fresnel, np.uint64(seed), settings.max_events,
                 *scratch)
