@@ -201,12 +201,13 @@ def test_the_normal_window_is_the_same_whatever_the_chunking():
     """smoothed_wall reads a window inside one chunk by a shorter path than one
     across chunks or clamped at the faces; both must give the same numbers, bit for bit."""
     rng = np.random.default_rng(4)
-    vol = (ndimage.gaussian_filter(rng.random((48, 40, 48)), 2.0) > 0.5).astype(np.uint8)
-    views = [window_view(*resident(vol, chunks)) for chunks in [(48, 40, 48), (16, 24, 20), (20, 13, 64)]]
-    # Row masks saying nothing: every row is read.
-    views.append(window_view(*resident(vol, (48, 40, 48)), masks=np.zeros((1, 48, 2, 1), np.uint64)))
+    vol = (ndimage.gaussian_filter(rng.random((48, 100, 48)), 2.0) > 0.5).astype(np.uint8)
+    # One chunk (row masks of two words along T: windows across T = 64 read both),
+    # chunks across the window, and row masks saying nothing (every row is read).
+    views = [window_view(*resident(vol, chunks)) for chunks in [(48, 100, 48), (16, 24, 20), (20, 13, 64)]]
+    views.append(window_view(*resident(vol, (48, 100, 48)), masks=np.zeros((1, 48, 2, 2), np.uint64)))
     scratch = K.window_scratch(5.25)
-    pts = np.column_stack([rng.uniform(-2, 50, 300), rng.uniform(-2, 42, 300), rng.uniform(-2, 50, 300)])
+    pts = np.column_stack([rng.uniform(-2, 50, 400), rng.uniform(-2, 102, 400), rng.uniform(-2, 50, 400)])
     for x in pts:
         out = []
         for view in views:
