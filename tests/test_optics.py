@@ -149,17 +149,21 @@ def test_bit_packed_chunks_read_back_every_voxel():
     assert K.voxel_at(*view, 5, 5, 150) == K.OUTSIDE  # L chunk 2 spans 140-209
 
 
-@pytest.mark.parametrize("shape", [(16, 16, 64), (16, 9, 128), (5, 7, 136), (16, 16, 40)])
+@pytest.mark.parametrize("shape", [(16, 16, 64), (16, 9, 128), (5, 7, 136), (16, 16, 40), (7, 9, 70)])
 def test_packing_eight_voxels_per_load_equals_packing_voxel_by_voxel(shape):
-    """Chunks whose L rows are a multiple of 8 voxels are packed from 64-bit loads
-    (also strided views of a larger volume, and chunks shorter than the slot)."""
+    """Chunks are packed from 64-bit loads of 8 voxels: also strided views of a
+    larger volume, rows that are not a multiple of 8 voxels, chunks shorter
+    than the slot (the rest of the slot reads as polymer)."""
     rng = np.random.default_rng(3)
     big = (rng.random((40, 40, 300)) < 0.45).astype(np.uint8)
     slot = (16, 16, 3)
     for chunk in (big[: shape[0], : shape[1], : shape[2]], big[3:3 + shape[0], 5:5 + shape[1], 8:8 + shape[2]],
-                  np.ones(shape, np.uint8), np.zeros(shape, np.uint8)):
-        ref, got = np.full(slot, 7, np.uint64), np.full(slot, 9, np.uint64)
-        assert K._pack_bits(np.ascontiguousarray(chunk), ref) <= 1
+                  big[: shape[0], : shape[1], : 2 * shape[2] : 2], np.ones(shape, np.uint8), np.zeros(shape, np.uint8)):
+        # Voxel by voxel: bit b of word w of row (i, j) is voxel (i, j, 64 w + b).
+        ref = np.zeros(slot, np.uint64)
+        for i, j, k in zip(*np.nonzero(chunk)):
+            ref[i, j, k // 64] |= np.uint64(1) << np.uint64(k % 64)
+        got = np.full(slot, 9, np.uint64)
         assert K.pack_chunk(chunk, got)
         assert np.array_equal(got, ref)
     for k in range(8):  # a bad value in any byte of a word is caught

@@ -112,10 +112,13 @@ def pack_chunk(chunk, out):
         if chunk.dtype != np.bool_ and np.any((chunk != 0) & (chunk != 1)):
             return False
         chunk = chunk.astype(np.uint8)
-    if chunk.shape[2] % 8 == 0 and chunk.strides[2] == 1:
-        # Eight voxels per 64-bit load (only the L axis needs to be contiguous).
-        return _pack_words(chunk.view(np.uint64), out)
-    return _pack_bits(chunk, out) <= 1
+    nL = chunk.shape[2]
+    if nL % 8 or chunk.strides[2] != 1:
+        # Rows of whole 64-bit words, contiguous along L (the padding reads as polymer).
+        padded = np.zeros(chunk.shape[:2] + (-(-nL // 8) * 8,), np.uint8)
+        padded[:, :, :nL] = chunk
+        chunk = padded
+    return _pack_words(chunk.view(np.uint64), out)
 
 
 # Gathers bit 0 of each byte of a word into the top byte: byte k -> bit 56 + k
@@ -126,7 +129,7 @@ _LOW_BITS = np.uint64(0x0101010101010101)
 
 @njit(cache=True, nogil=True)
 def _pack_words(words, out):
-    """pack_chunk of a uint8 chunk seen as uint64 words (8 voxels each along L).
+    """pack_chunk of a uint8 chunk seen as uint64 words (8 voxels each along L), in one pass.
 
     Returns False if a voxel is neither 0 nor 1 (then the gather is garbage).
     """
@@ -174,26 +177,6 @@ def row_masks(bits, n_l, out):
                 out[i, 0, j >> 6] |= bit
             if empty:
                 out[i, 1, j >> 6] |= bit
-
-
-@njit(cache=True, nogil=True)
-def _pack_bits(chunk, out):
-    """pack_chunk of a uint8 chunk, in one pass; returns the OR of all voxels (> 1: a bad value)."""
-    nR, nT, nL = chunk.shape
-    if nR < out.shape[0] or nT < out.shape[1] or nL < 64 * out.shape[2]:
-        out[:] = 0
-    seen = np.uint8(0)
-    for i in range(nR):
-        for j in range(nT):
-            for w in range(out.shape[2]):
-                k0 = 64 * w
-                acc = np.uint64(0)
-                for k in range(min(64, nL - k0)):
-                    v = chunk[i, j, k0 + k]
-                    seen |= v
-                    acc |= np.uint64(v & np.uint8(1)) << np.uint64(k)
-                out[i, j, w] = acc
-    return seen
 
 
 @njit(cache=True, nogil=True)
