@@ -139,6 +139,19 @@ def test_row_masks_name_exactly_the_all_wall_and_all_polymer_rows():
         assert np.array_equal(bits[: chunk.shape[0], 1, : chunk.shape[1]].astype(bool), ~chunk.any(axis=2))
 
 
+def test_a_run_of_row_mask_bits_is_read_across_mask_words():
+    """_mask_run gives the bits from o0 on of a row mask of several words, from bit 0
+    (a window across chunks takes each chunk's run of rows this way)."""
+    rng = np.random.default_rng(6)
+    masks = rng.integers(0, 2**63, (2, 3, 2, 2), dtype=np.uint64) * np.uint64(2) + np.uint64(1)
+    bits = np.unpackbits(masks.view(np.uint8), axis=-1, bitorder="little").reshape(2, 3, 2, 128)
+    for o0 in (0, 1, 37, 63, 64, 70, 100):
+        got = int(K._mask_run(masks, 1, 2, 1, o0))
+        n = min(64, 128 - o0)
+        want = sum(int(b) << q for q, b in enumerate(bits[1, 2, 1, o0:o0 + n]))
+        assert got == want, o0
+
+
 def test_bit_packed_chunks_read_back_every_voxel():
     """Chunks are held one bit per voxel in rows along L: rows of 70 voxels take
     two words, last chunks are partly filled, and voxels there read as outside."""
@@ -207,8 +220,10 @@ def test_the_normal_window_is_the_same_whatever_the_chunking():
     rng = np.random.default_rng(4)
     vol = (ndimage.gaussian_filter(rng.random((48, 100, 48)), 2.0) > 0.5).astype(np.uint8)
     # One chunk (row masks of two words along T: windows across T = 64 read both),
-    # chunks across the window, and row masks saying nothing (every row is read).
-    views = [window_view(*resident(vol, chunks)) for chunks in [(48, 100, 48), (16, 24, 20), (20, 13, 64)]]
+    # chunks across the window (whose rows the masks of every chunk they cross
+    # settle, also masks of two words), and row masks saying nothing (every row is read).
+    views = [window_view(*resident(vol, chunks))
+             for chunks in [(48, 100, 48), (16, 24, 20), (20, 13, 64), (16, 100, 20)]]
     views.append(window_view(*resident(vol, (48, 100, 48)), masks=np.zeros((1, 48, 2, 2), np.uint64)))
     scratch = K.window_scratch(5.25)
     pts = np.column_stack([rng.uniform(-2, 50, 400), rng.uniform(-2, 102, 400), rng.uniform(-2, 50, 400)])

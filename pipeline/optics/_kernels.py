@@ -334,6 +334,17 @@ def _prefetch_window(bits, masks, table, box, cs, shape, start, n):
             prefetch(bits, slot, oi + q, oj + min(r, n - 1), word)
 
 
+@njit(inline="always", cache=True, nogil=True)
+def _mask_run(masks, slot, oi, kind, o0):
+    """Bits o0, o0 + 1, ... of the row mask ``kind`` of R plane ``oi`` of a slot, from bit 0."""
+    w = o0 >> 6
+    sh = o0 & 63
+    v = masks[slot, oi, kind, w] >> np.uint64(sh)
+    if sh and w + 1 < masks.shape[3]:
+        v |= masks[slot, oi, kind, w + 1] << np.uint64(64 - sh)
+    return v
+
+
 @njit(cache=True, nogil=True)
 def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, hess, wts, tab, segs, slots):
     """S(x) = (G_σ * χ_wall)(x) / ΣG, its gradient (into ``grad``) and Hessian.
@@ -527,6 +538,30 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
             if mtwo:
                 known |= masks[slot, oi, 0, mword + 1] << mback
                 poly |= masks[slot, oi, 1, mword + 1] << mback
+            todo &= ~poly
+            known &= todo
+        else:
+            # Across chunks: the masks of each T chunk's run of rows, a row
+            # counting as all wall (all polymer) where it is so in every L run.
+            poly = np.uint64(0)
+            for ub in range(nch1):
+                p0 = segs[13, ub]
+                p1 = segs[13, ub + 1] - 1 if ub + 1 < nch1 else hi[1]
+                o0 = segs[3, p0]
+                if segs[3, p1] - o0 != p1 - p0:
+                    continue  # rows clamped at the volume's T faces: read them
+                lm = (np.uint64(1) << np.uint64(p1 - p0 + 1)) - np.uint64(1)
+                kw = lm
+                pw = lm
+                for sg in range(nseg):
+                    slot = slots[sg, ua, ub]
+                    if slot < 0:  # -2: outside a finite volume, reads as polymer
+                        kw = np.uint64(0)
+                        continue
+                    kw &= _mask_run(masks, slot, oi, 0, o0)
+                    pw &= _mask_run(masks, slot, oi, 1, o0)
+                known |= kw << np.uint64(p0 - lo[1])
+                poly |= pw << np.uint64(p0 - lo[1])
             todo &= ~poly
             known &= todo
         while todo:
