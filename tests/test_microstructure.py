@@ -251,3 +251,37 @@ def test_region_10_mm_away_costs_the_same_as_at_the_origin():
     for name in ("node_states", "chain_lookups"):
         assert far[name] == pytest.approx(near[name], rel=0.3), name
     assert times[1] < 2.0 * times[0]
+
+
+# Digests of blocks generated at HEAD of the micro cache version below.  The
+# cached wood (results/cache/micro) is keyed by parameters and that version,
+# not by the code, so a change of voxels must come with a new version.
+PINNED = [
+    # (preset, overrides, start, shape, what the block holds, sha256 of its bytes)
+    ("birch", {}, (0, 512, 0), (64, 64, 64), "a biseriate ray band",
+     "cc4454cab98ec585c659bb681c1d549ecdb8843de8b825569a9a9db27d2e0014"),
+    ("birch", {}, (640, 768, -128), (64, 64, 64), "a vessel",
+     "59a46577765c2fcf2da261222275d4eafdbad82f9b864cbb5816b43e0d03bee1"),
+    ("birch", {}, (-1060, 400, 0), (64, 64, 64), "the shared wall of a vessel pair",
+     "925d671d9674f43cbb533a889e58f9403a11700a6f4e15f77e04d311b02c0198"),
+    ("balsa", {}, (0, 0, 0), (48, 48, 48), "polygon cells",
+     "071386c8f93bd6e373c5c6cdc6fe786a83e8d6952167bd808c85d09986d192e2"),
+    ("birch", {"laminate": [0, -45, 90, 45, 0]}, (0, 0, 0), (48, 48, 48), "rotated plies",
+     "7654afa564a6dbc9740f017a22874067d71f25cc670f510d67614cb03be2606e"),
+]
+
+
+@pytest.mark.parametrize("preset, overrides, start, shape, holds, digest", PINNED,
+                         ids=[row[4] for row in PINNED])
+def test_generated_voxels_are_pinned_for_the_cache_version(preset, overrides, start, shape, holds,
+                                                           digest):
+    import hashlib
+
+    from pipeline.study.run import VERSIONS
+
+    p = build_params(preset, overrides=overrides)
+    g = make_grid((100, 100, 100), V, (0, 0, 0), p)
+    got = hashlib.sha256(generate_block(p, g, start, shape, seed=1).tobytes()).hexdigest()
+    assert VERSIONS["micro"] == "1", "new micro version: re-pin these digests"
+    assert got == digest, (f"the voxels of {holds} changed; if that is intended, bump "
+                           f"VERSIONS['micro'] in pipeline/study/run.py and re-pin")

@@ -210,9 +210,54 @@ def ray_band_width(M):
     return M[RSER] * (M[RWIDTH] + 2.0 * M[T0])
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def ray_slice_tables(seed, M, L, rays, nr, RC):
+    """What the ray cells of the active ray rows share on the slice at L.
+
+    RC[r, s] for sub-column s of row r: (open, Tc, aT, dL², layer id, row id,
+    chain phase), and RC[r, 0, 7] the sub-columns' width along T, where ``open`` is 0 when the slice misses the sub-column's
+    cells or they have no lumen, Tc and aT are the lumen's centre and
+    semi-axis along T, dL the slice's offset from the lumen centre over its
+    semi-axis along L.  Everything here depends on L, not on the point.
+    """
+    ns = np.int64(M[RSER])
+    h = M[RHEIGHT]
+    mean = M[RLEN]
+    for r in range(nr):
+        t_r = rays[r, 0]
+        b = rays[r, 1]
+        L0 = rays[r, 2]
+        L1 = rays[r, 3]
+        k = np.int64(rays[r, 4])
+        g = np.int64(rays[r, 5])
+        sw = 2.0 * b / ns
+        RC[r, 0, 7] = sw
+        for s in range(ns):
+            RC[r, s, 0] = 0.0
+            Tc = t_r - b + (s + 0.5) * sw
+            off = 0.5 * h * (s % 2)  # biseriate: the second column is offset by half a cell
+            ell = np.int64(math.floor((L - L0 - off) / h))
+            if ell < 0 or L0 + off + (ell + 1) * h > L1 + 1e-9:
+                continue
+            aT = 0.5 * sw - M[T0]
+            aL = 0.5 * h - M[T0]
+            if aT <= 0.0 or aL <= 0.0:
+                continue
+            Lc = L0 + off + (ell + 0.5) * h
+            dL = (L - Lc) / aL
+            ida = k * 8 + s
+            RC[r, s, 0] = 1.0
+            RC[r, s, 1] = Tc
+            RC[r, s, 2] = aT
+            RC[r, s, 3] = dL * dL
+            RC[r, s, 4] = ida
+            RC[r, s, 5] = g * 64 + ell
+            RC[r, s, 6] = uniform(seed, _rng.RAY_CELL_PHASE, ida, 0, 0) * mean + 0.5 * mean * (ell % 2)
+
+
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def ray_cell_phase(seed, M, pR, pT, L, t_r, b, L0, L1, k, g, memo):
-    """Phase inside a ray band of half-width b centred at T = t_r.
+def ray_cell_phase(seed, M, pR, pT, r, rays, RC, memo):
+    """Phase at (pR, pT) inside the band of active ray row r (tables: :func:`ray_slice_tables`).
 
     memo : float64[8, 4], per sub-column s the last radial cell found, (layer
         id, row id, lo, hi); a point of the same layer and row inside [lo, hi)
@@ -220,40 +265,28 @@ def ray_cell_phase(seed, M, pR, pT, L, t_r, b, L0, L1, k, g, memo):
         same).  Start it with NaNs.
     """
     ns = np.int64(M[RSER])
-    sw = 2.0 * b / ns
-    s = np.int64(math.floor((pT - (t_r - b)) / sw))
+    s = np.int64(math.floor((pT - (rays[r, 0] - rays[r, 1])) / RC[r, 0, 7]))
     s = min(max(s, 0), ns - 1)
-    Tc = t_r - b + (s + 0.5) * sw
-    h = M[RHEIGHT]
-    off = 0.5 * h * (s % 2)  # biseriate: the second column is offset by half a cell
-    ell = np.int64(math.floor((L - L0 - off) / h))
-    if ell < 0 or L0 + off + (ell + 1) * h > L1 + 1e-9:
+    if RC[r, s, 0] == 0.0:
         return WALL
-    aT = 0.5 * sw - M[T0]
-    aL = 0.5 * h - M[T0]
-    if aT <= 0.0 or aL <= 0.0:
-        return WALL
-    Lc = L0 + off + (ell + 0.5) * h
+    Tc = RC[r, s, 1]
+    aT = RC[r, s, 2]
     if abs(pT - Tc) >= aT:  # then (dT)² >= 1 exactly
         return WALL
     dT = (pT - Tc) / aT
-    dL = (L - Lc) / aL
-    if dT * dT + dL * dL >= 1.0:
+    if dT * dT + RC[r, s, 3] >= 1.0:
         return WALL
     # Radial cells along R; successive layers staggered by half a cell length.
-    ida = k * 8 + s
-    row = g * 64 + ell
     mem = memo[s]
-    if mem[0] == ida and mem[1] == row and mem[2] <= pR < mem[3]:
+    if mem[0] == RC[r, s, 4] and mem[1] == RC[r, s, 5] and mem[2] <= pR < mem[3]:
         lo = mem[2]
         hi = mem[3]
     else:
         mean = M[RLEN]
-        phase = uniform(seed, _rng.RAY_CELL_PHASE, ida, 0, 0) * mean + 0.5 * mean * (ell % 2)
-        lo, hi = chain_interval(pR, seed, _rng.RAY_CELL_END, ida, row, phase, mean,
-                                M[RLEN_SD], 0.4 * mean)
-        mem[0] = ida
-        mem[1] = row
+        lo, hi = chain_interval(pR, seed, _rng.RAY_CELL_END, np.int64(RC[r, s, 4]),
+                                np.int64(RC[r, s, 5]), RC[r, s, 6], mean, M[RLEN_SD], 0.4 * mean)
+        mem[0] = RC[r, s, 4]
+        mem[1] = RC[r, s, 5]
         mem[2] = lo
         mem[3] = hi
     end_wall = 0.5 * M[SCALE]
@@ -513,7 +546,7 @@ def pull_back(patch, gi0, gj0, G, R, T):
 # One slice (fixed L in ply coordinates): tables, then the per-point phase
 # --------------------------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
-def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VIDX, rays, stats,
+def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB, VIDX, rays, stats,
                 CV, CF, cn, ck, ENDS_):
     """Fill the node, fibre, vessel and ray tables of one slice at L.
 
@@ -522,6 +555,9 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VID
         bias is 0 for an open lumen and huge for a closed one.
     FF : per centre flag, 0 open lumen, 1 closed (end plate or no lumen), 2 vessel member.
     VG : per vessel member (cR, cT, aR, aT) of its outline.
+    VB : per vessel member and cluster neighbour (the one before, the one after):
+        (1 if there is one else 0, eR, eT, |e|, mR, mT), e from this member's
+        centre to the neighbour's and m their midpoint (the shared wall's bisector).
     VIDX : per lattice cell of the window, the first member of the vessel cluster
         whose outline may cover it, or -1.
     rays : rows (t_r, b, L0, L1, k, slot, taper) of ray groups active at L.
@@ -587,6 +623,20 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VID
         VG[v, 1] = 0.5 * (td + tu)
         VG[v, 2] = 0.5 * (rr - rl) * VESSEL_AXIS_R
         VG[v, 3] = 0.5 * (tu - td)
+    for v in range(nv):
+        for side in range(2):
+            u = v - 1 + 2 * side
+            VB[v, side, 0] = 0.0
+            if u < 0 or u >= nv or vessels[u, 2] != vessels[v, 2]:
+                continue
+            ex = VG[u, 0] - VG[v, 0]
+            ey = VG[u, 1] - VG[v, 1]
+            VB[v, side, 0] = 1.0
+            VB[v, side, 1] = ex
+            VB[v, side, 2] = ey
+            VB[v, side, 3] = math.sqrt(ex * ex + ey * ey)
+            VB[v, side, 4] = 0.5 * (VG[u, 0] + VG[v, 0])
+            VB[v, side, 5] = 0.5 * (VG[u, 1] + VG[v, 1])
     VIDX[:, :] = -1
     for v in range(nv):
         first = v - vessels[v, 3]
@@ -627,7 +677,7 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VID
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def _vessel_phase(pR, pT, VG, vessels, nv, first, wall):
+def _vessel_phase(pR, pT, VG, VB, vessels, first, wall):
     """-1 outside the vessel cluster starting at member ``first``, else the phase there."""
     inside = False
     for v in range(first, first + vessels[first, 4]):
@@ -651,15 +701,10 @@ def _vessel_phase(pR, pT, VG, vessels, nv, first, wall):
             continue
         # Cluster neighbours share a flat wall on the bisector of their centres.
         lumen = True
-        for u in (v - 1, v + 1):
-            if u < 0 or u >= nv or vessels[u, 2] != vessels[v, 2]:
-                continue
-            ex = VG[u, 0] - VG[v, 0]
-            ey = VG[u, 1] - VG[v, 1]
-            norm = math.sqrt(ex * ex + ey * ey)
-            mx = 0.5 * (VG[u, 0] + VG[v, 0])
-            my = 0.5 * (VG[u, 1] + VG[v, 1])
-            if ((pR - mx) * ex + (pT - my) * ey) / norm > -0.5 * wall:
+        for side in range(2):
+            if VB[v, side, 0] != 0.0 and (((pR - VB[v, side, 4]) * VB[v, side, 1]
+                                           + (pT - VB[v, side, 5]) * VB[v, side, 2])
+                                          / VB[v, side, 3] > -0.5 * wall):
                 lumen = False
         if lumen:
             return 0
@@ -684,15 +729,9 @@ def _squeeze_and_classify(pT, c, W2, lam, rays, nr):
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def _fibre_phase(pR, pT, inv_c, n_lo, m_lo, FE):
-    """Phase in the fibre lattice (ellipse lumens), branch-free."""
-    return _fibre_phase_at(pR, pT, np.int64(math.floor(pR * inv_c)),
-                           np.int64(math.floor(pT * inv_c)), n_lo, m_lo, FE)
-
-
-@njit(inline="always", cache=True, nogil=True, error_model="numpy")
 def _fibre_phase_at(pR, pT, n_fl, w_fl, n_lo, m_lo, FE):
-    """:func:`_fibre_phase` given the lattice cell (floor(pR/c), floor(pT/c)) of the point.
+    """Phase in the fibre lattice (ellipse lumens), branch-free, given the point's
+    lattice cell (floor(pR/c), floor(pT/c)).
 
     Lumens of row m = 2j reach |w - m| < 2 nodes, so only rows 2·j0 and
     2·j0 + 2 (j0 = floor(w/2) = floor(w) >> 1) and, in each, the two centres
@@ -714,39 +753,12 @@ def _fibre_phase_at(pR, pT, n_fl, w_fl, n_lo, m_lo, FE):
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def point_phase(seed, M, pR, pT, r, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, memo):
-    """Phase (1 wall, 0 polymer) at pre-image (pR, pT) on the slice at L.
+def _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt, cand_i, cand_j):
+    """Thin uniform walls on the Voronoi faces of the jittered centres (balsa).
 
-    ``pT`` and ``r`` are what :func:`_squeeze_and_classify` returns for the
-    point.  The general path, one point at a time; :func:`_eval_bucket`
-    computes the common fibre case in a call-free loop.  Inlined with its
-    helpers: as calls, passing the tables cost ~100 ns per point, more than
-    the work (a birch chunk crossing a ray band took 4× a plain one).
+    cand_i, cand_j : int64[9] scratch for the candidate centres.
     """
-    c = M[PITCH]
-    if r >= 0:
-        return ray_cell_phase(seed, M, pR, pT, L, rays[r, 0], rays[r, 1], rays[r, 2],
-                              rays[r, 3], np.int64(rays[r, 4]), np.int64(rays[r, 5]), memo)
-    inv_c = 1.0 / c
-    u = pR * inv_c
-    w = pT * inv_c
-    if nv > 0:
-        first = VIDX[np.int64(math.floor(u)) - n_lo, np.int64(math.floor(w)) - m_lo]
-        if first >= 0:
-            ph = _vessel_phase(pR, pT, VG, vessels, nv, first, M[VWALL])
-            if ph >= 0:
-                return np.uint8(ph)
-    if M[SHAPE] == 1.0:
-        return _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt)
-    return _fibre_phase(pR, pT, inv_c, n_lo, m_lo, FE)
-
-
-@njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt):
-    """Thin uniform walls on the Voronoi faces of the jittered centres (balsa)."""
     jc = np.int64(round(w / 2.0))
-    cand_i = np.empty(12, np.int64)
-    cand_j = np.empty(12, np.int64)
     nc = 0
     best = -1
     bd = 1e300
@@ -787,29 +799,29 @@ def _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0, gj0, G,
-                 seed, M, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr):
+                 seed, M, n_lo, m_lo, FE, FF, Nt, vessels, VG, VB, VIDX, rays, nr, RC):
     """Phases of the voxels of one slice bucket.
 
-    The first pass has no calls, so LLVM keeps it tight: it resolves plain
-    fibre voxels and queues the rest (ray bands, vessel cells, polygon
-    cells), which the second pass hands to :func:`point_phase`.
+    Per point: a ray band (:func:`ray_cell_phase`), else the vessel cluster
+    whose outline may cover the point's lattice cell (:func:`_vessel_phase`),
+    else the fibre lattice (:func:`_fibre_phase_at`, or the polygon cells of
+    :func:`_polygon_phase`).  The helpers are inlined and read per-slice
+    tables, so a point costs no call.
     """
     c = M[PITCH]
     inv_c = 1.0 / c
     W2 = 0.5 * ray_band_width(M)
     lam = M[RSQUEEZE] * M[SCALE]
     polygon = M[SHAPE] == 1.0
-    nT = j_hi - j_lo
-    qj = np.empty(nT, np.int64)
-    qR = np.empty(nT)
-    qT = np.empty(nT)
-    qr = np.empty(nT, np.int64)
+    vwall = M[VWALL]
+    has_vessels = vessels.shape[0] > 0
     memo = np.full((8, 4), np.nan)
+    cand_i = np.empty(9, np.int64)
+    cand_j = np.empty(9, np.int64)
     for s in range(start, stop):
         idx = order[s]
         i = idx // nL
         k = idx % nL
-        nq = 0
         for j in range(j_lo, j_hi):
             if rotated:
                 pR, pT = pull_back(patch, gi0, gj0, G, Rp[i, k], Tp[j])
@@ -817,22 +829,23 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
                 pR = P1[i, j, 0]
                 pT = P1[i, j, 1]
             sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
+            if r >= 0:
+                out[i, j, k] = ray_cell_phase(seed, M, pR, sT, r, rays, RC, memo)
+                continue
             n_fl = np.int64(math.floor(pR * inv_c))
             w_fl = np.int64(math.floor(sT * inv_c))
-            special = r >= 0 or polygon
-            if not special and nv > 0:
-                special = VIDX[n_fl - n_lo, w_fl - m_lo] >= 0
-            if special:
-                qj[nq] = j
-                qR[nq] = pR
-                qT[nq] = sT
-                qr[nq] = r
-                nq += 1
+            if has_vessels:
+                first = VIDX[n_fl - n_lo, w_fl - m_lo]
+                if first >= 0:
+                    ph = _vessel_phase(pR, sT, VG, VB, vessels, first, vwall)
+                    if ph >= 0:
+                        out[i, j, k] = np.uint8(ph)
+                        continue
+            if polygon:
+                out[i, j, k] = _polygon_phase(pR, sT, pR * inv_c, sT * inv_c, n_lo, m_lo, FE, FF, Nt,
+                                              cand_i, cand_j)
             else:
                 out[i, j, k] = _fibre_phase_at(pR, sT, n_fl, w_fl, n_lo, m_lo, FE)
-        for q in range(nq):
-            out[i, qj[q], k] = point_phase(seed, M, qR[q], qT[q], qr[q], L, n_lo, m_lo, FE, FF, Nt,
-                                           vessels, nv, VG, VIDX, rays, memo)
 
 
 # --------------------------------------------------------------------------
@@ -886,7 +899,9 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
     m_hi = np.int64(math.ceil((Tp[j_hi - 1] + t_margin) / c)) + 5
     nm = m_hi - m_lo + 1
     VG = np.empty((max(nv, 1), 4))
+    VB = np.empty((max(nv, 1), 2, 6))
     rays = np.empty((64, 7))
+    RC = np.empty((64, 6, 8))
     # Control values and fibre cells shared by the slices (see build_slice); their
     # window spans every slice's node window.
     cn = np.int64(math.floor((Rp.min() - dmax - 1.0) / c)) - 4
@@ -924,9 +939,10 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
         FE[:, :, 4] = 1e300
         FF = np.ones((nn, nm), np.uint8)
         VIDX = np.empty((nn, nm), np.int64)
-        nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VIDX, rays,
+        nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB, VIDX, rays,
                          stats, CV, CF, cn, ck, ENDS_)
+        ray_slice_tables(seed, M, L, rays, nr, RC)
         _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0,
-                     gj0, G, seed, M, L, n_lo, m_lo, FE, FF, Nt, vessels, nv, VG, VIDX, rays, nr)
+                     gj0, G, seed, M, n_lo, m_lo, FE, FF, Nt, vessels[:nv], VG, VB, VIDX, rays, nr, RC)
         stats[ST_VOXELS] += (stop - start) * (j_hi - j_lo)
         start = stop
