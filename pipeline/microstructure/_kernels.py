@@ -111,10 +111,10 @@ def node_states(seed, M, L, n_lo, m_lo, NR, NT, Nt, CV, CF, cn, ck):
     k, w0, w1, w2, w3 = _spline(L, M[CTRL])
     nn, nm = NR.shape
     for i in range(nn):
-        a = n_lo + i - cn
+        a = np.uint64(n_lo + i - cn)
         for j in range(nm):
             for q in range(4):
-                z = k + q - 1 - ck
+                z = np.uint64(k + q - 1 - ck)
                 if CF[a, j, z] == 0:
                     _controls(seed, n_lo + i, m_lo + j, k + q - 1, CV[a, j, z])
                     CF[a, j, z] = 1
@@ -265,8 +265,8 @@ def ray_cell_phase(seed, M, pR, pT, r, rays, RC, memo):
         same).  Start it with NaNs.
     """
     ns = np.int64(M[RSER])
-    s = np.int64(math.floor((pT - (rays[r, 0] - rays[r, 1])) / RC[r, 0, 7]))
-    s = min(max(s, 0), ns - 1)
+    s0 = np.int64(math.floor((pT - (rays[r, 0] - rays[r, 1])) / RC[r, 0, 7]))
+    s = np.uint64(min(max(s0, 0), ns - 1))
     if RC[r, s, 0] == 0.0:
         return WALL
     Tc = RC[r, s, 1]
@@ -533,12 +533,14 @@ def pull_back(patch, gi0, gj0, G, R, T):
     iy = math.floor(y)
     fx = x - ix
     fy = y - iy
-    i = np.int64(ix) - gi0
-    j = np.int64(iy) - gj0
-    dR = ((1.0 - fx) * ((1.0 - fy) * patch[i, j, 0] + fy * patch[i, j + 1, 0])
-          + fx * ((1.0 - fy) * patch[i + 1, j, 0] + fy * patch[i + 1, j + 1, 0]))
-    dT = ((1.0 - fx) * ((1.0 - fy) * patch[i, j, 1] + fy * patch[i, j + 1, 1])
-          + fx * ((1.0 - fy) * patch[i + 1, j, 1] + fy * patch[i + 1, j + 1, 1]))
+    i = np.uint64(np.int64(ix) - gi0)
+    j = np.uint64(np.int64(iy) - gj0)
+    i1 = i + np.uint64(1)
+    j1 = j + np.uint64(1)
+    dR = ((1.0 - fx) * ((1.0 - fy) * patch[i, j, 0] + fy * patch[i, j1, 0])
+          + fx * ((1.0 - fy) * patch[i1, j, 0] + fy * patch[i1, j1, 0]))
+    dT = ((1.0 - fx) * ((1.0 - fy) * patch[i, j, 1] + fy * patch[i, j1, 1])
+          + fx * ((1.0 - fy) * patch[i1, j, 1] + fy * patch[i1, j1, 1]))
     return R - dR, T - dT
 
 
@@ -680,7 +682,8 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB,
 def _vessel_phase(pR, pT, VG, VB, vessels, first, wall):
     """-1 outside the vessel cluster starting at member ``first``, else the phase there."""
     inside = False
-    for v in range(first, first + vessels[first, 4]):
+    f = np.uint64(first)
+    for v in range(f, f + np.uint64(vessels[f, 4])):
         # |x| >= a > 0 gives (x / a)² >= 1 exactly: skip the divisions.
         if abs(pR - VG[v, 0]) >= VG[v, 2] or abs(pT - VG[v, 1]) >= VG[v, 3]:
             continue
@@ -715,15 +718,16 @@ def _vessel_phase(pR, pT, VG, VB, vessels, first, wall):
 def _squeeze_and_classify(pT, c, W2, lam, rays, nr):
     """Ray band test and squeeze pull-back.  Returns (pT after squeeze, ray row or -1)."""
     for r in range(nr):
-        if abs(pT - rays[r, 0]) < rays[r, 1]:
+        if abs(pT - rays[np.uint64(r), 0]) < rays[np.uint64(r), 1]:
             return pT, r
-    for r in range(nr):
-        d = pT - rays[r, 0]
-        x = abs(d) - rays[r, 1]
+    for rs in range(nr):
+        ru = np.uint64(rs)
+        d = pT - rays[ru, 0]
+        x = abs(d) - rays[ru, 1]
         if x < lam:
             # Pull-back of the squeeze: the band edge maps to the removed row's edge.
             q = 1.0 - x / lam
-            shift = rays[r, 6] * (c - W2) * q * q * q
+            shift = rays[ru, 6] * (c - W2) * q * q * q
             pT = pT + shift if d > 0 else pT - shift
     return pT, -1
 
@@ -742,9 +746,9 @@ def _fibre_phase_at(pR, pT, n_fl, w_fl, n_lo, m_lo, FE):
     qmin = 1e300
     for dj in range(2):
         j = j0 + dj
-        mi = 2 * j - m_lo
+        mi = np.uint64(2 * j - m_lo)
         for di in range(2):
-            ii = n_fl - ((n_fl - j) & 1) - n_lo + 2 * di
+            ii = np.uint64(n_fl - ((n_fl - j) & 1) - n_lo + 2 * di)
             dR = pR - FE[ii, mi, 0]
             dT = pT - FE[ii, mi, 1]
             q = dR * dR * FE[ii, mi, 2] + dT * dT * FE[ii, mi, 3] + FE[ii, mi, 4]
@@ -806,7 +810,9 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
     whose outline may cover the point's lattice cell (:func:`_vessel_phase`),
     else the fibre lattice (:func:`_fibre_phase_at`, or the polygon cells of
     :func:`_polygon_phase`).  The helpers are inlined and read per-slice
-    tables, so a point costs no call.
+    tables, so a point costs no call.  Indices on this path are cast to
+    uint64: Numba wraps negative signed indices around, a test on every
+    access that unsigned ones skip (13 % of a birch chunk's time).
     """
     c = M[PITCH]
     inv_c = 1.0 / c
@@ -819,10 +825,11 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
     cand_i = np.empty(9, np.int64)
     cand_j = np.empty(9, np.int64)
     for s in range(start, stop):
-        idx = order[s]
-        i = idx // nL
-        k = idx % nL
-        for j in range(j_lo, j_hi):
+        idx = np.uint64(order[s])
+        i = idx // np.uint64(nL)
+        k = idx % np.uint64(nL)
+        for jj in range(j_lo, j_hi):
+            j = np.uint64(jj)
             if rotated:
                 pR, pT = pull_back(patch, gi0, gj0, G, Rp[i, k], Tp[j])
             else:
@@ -830,12 +837,12 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
                 pT = P1[i, j, 1]
             sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
             if r >= 0:
-                out[i, j, k] = ray_cell_phase(seed, M, pR, sT, r, rays, RC, memo)
+                out[i, j, k] = ray_cell_phase(seed, M, pR, sT, np.uint64(r), rays, RC, memo)
                 continue
             n_fl = np.int64(math.floor(pR * inv_c))
             w_fl = np.int64(math.floor(sT * inv_c))
             if has_vessels:
-                first = VIDX[n_fl - n_lo, w_fl - m_lo]
+                first = VIDX[np.uint64(n_fl - n_lo), np.uint64(w_fl - m_lo)]
                 if first >= 0:
                     ph = _vessel_phase(pR, sT, VG, VB, vessels, first, vwall)
                     if ph >= 0:
