@@ -215,10 +215,11 @@ def ray_slice_tables(seed, M, L, rays, nr, RC):
     """What the ray cells of the active ray rows share on the slice at L.
 
     RC[r, s] for sub-column s of row r: (open, Tc, aT, dL², layer id, row id,
-    chain phase), and RC[r, 0, 7] the sub-columns' width along T, where ``open`` is 0 when the slice misses the sub-column's
+    chain phase), where ``open`` is 0 when the slice misses the sub-column's
     cells or they have no lumen, Tc and aT are the lumen's centre and
-    semi-axis along T, dL the slice's offset from the lumen centre over its
-    semi-axis along L.  Everything here depends on L, not on the point.
+    semi-axis along T, and dL the slice's offset from the lumen centre over
+    its semi-axis along L; RC[r, 0, 7] is the sub-columns' width along T.
+    Everything here depends on L, not on the point.
     """
     ns = np.int64(M[RSER])
     h = M[RHEIGHT]
@@ -812,7 +813,7 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
     :func:`_polygon_phase`).  The helpers are inlined and read per-slice
     tables, so a point costs no call.  Indices on this path are cast to
     uint64: Numba wraps negative signed indices around, a test on every
-    access that unsigned ones skip (13 % of a birch chunk's time).
+    access that unsigned ones skip (about a fifth of a birch chunk's time).
     """
     c = M[PITCH]
     inv_c = 1.0 / c
