@@ -123,33 +123,42 @@ def window_view(cache, view, masks=None):
     return (view[0], cache.masks if masks is None else masks) + view[1:]
 
 
-def test_row_masks_name_exactly_the_all_wall_and_all_polymer_rows():
+def test_row_masks_name_exactly_the_all_wall_and_all_polymer_rows_of_each_segment():
     rng = np.random.default_rng(5)
     vol = (rng.random((40, 70, 150)) < 0.5).astype(np.uint8)
     vol[:, ::3, :] = 1  # whole rows of wall and of polymer, and some with one voxel changed
     vol[:, 1::3, :] = 0
+    vol[:, 2::6, 20:40] = 1  # rows uniform over some L segments only
     vol[rng.integers(0, 40, 200), rng.integers(0, 70, 200), rng.integers(0, 150, 200)] ^= 1
     cache, _ = resident(vol, (16, 70, 72))  # rows of 72 voxels: two words, the second partly used
+    seg = K.MASK_SEG
+    assert cache.masks.shape[2] == -(-72 // seg) == 5  # the last segment holds 8 voxels
     for key, s in cache.slots.items():
         sl = tuple(slice(k * c, (k + 1) * c) for k, c in zip(key, cache.source.chunks))
         chunk = vol[sl]
-        bits = np.unpackbits(cache.masks[s].view(np.uint8), axis=-1, bitorder="little")[:, :, :70]
-        full = chunk.shape[2] == 72 and chunk.all(axis=2)  # a partial chunk's rows are never "all wall"
-        assert np.array_equal(bits[: chunk.shape[0], 0, : chunk.shape[1]].astype(bool), full & np.ones_like(chunk[:, :, 0], bool))
-        assert np.array_equal(bits[: chunk.shape[0], 1, : chunk.shape[1]].astype(bool), ~chunk.any(axis=2))
+        bits = np.unpackbits(cache.masks[s].view(np.uint8), axis=-1, bitorder="little")[..., :70]
+        for g in range(5):
+            part = chunk[:, :, g * seg:(g + 1) * seg]
+            # The padding of a partial chunk reads as polymer: its rows are never all wall there.
+            full = part.all(axis=2) if chunk.shape[2] >= min((g + 1) * seg, 72) else np.zeros(part.shape[:2], bool)
+            assert np.array_equal(bits[: chunk.shape[0], g, 0, : chunk.shape[1]].astype(bool), full)
+            assert np.array_equal(bits[: chunk.shape[0], g, 1, : chunk.shape[1]].astype(bool), ~part.any(axis=2))
 
 
-def test_a_run_of_row_mask_bits_is_read_across_mask_words():
-    """_mask_run gives the bits from o0 on of a row mask of several words, from bit 0
-    (a window across chunks takes each chunk's run of rows this way)."""
+def test_a_run_of_row_mask_bits_is_read_across_mask_words_and_segments():
+    """_mask_run gives the bits from o0 on of a row mask of several words, from bit 0,
+    set where they are in every segment asked for (a window across chunks takes
+    each chunk's run of rows this way)."""
     rng = np.random.default_rng(6)
-    masks = rng.integers(0, 2**63, (2, 3, 2, 2), dtype=np.uint64) * np.uint64(2) + np.uint64(1)
-    bits = np.unpackbits(masks.view(np.uint8), axis=-1, bitorder="little").reshape(2, 3, 2, 128)
-    for o0 in (0, 1, 37, 63, 64, 70, 100):
-        got = int(K._mask_run(masks, 1, 2, 1, o0))
-        n = min(64, 128 - o0)
-        want = sum(int(b) << q for q, b in enumerate(bits[1, 2, 1, o0:o0 + n]))
-        assert got == want, o0
+    masks = rng.integers(0, 2**63, (2, 3, 3, 2, 2), dtype=np.uint64) * np.uint64(2) + np.uint64(1)
+    bits = np.unpackbits(masks.view(np.uint8), axis=-1, bitorder="little").reshape(2, 3, 3, 2, 128)
+    for g0, g1 in ((0, 0), (1, 2), (0, 2)):
+        for o0 in (0, 1, 37, 63, 64, 70, 100):
+            got = int(K._mask_run(masks, 1, 2, g0, g1, 1, o0))
+            n = min(64, 128 - o0)
+            run = bits[1, 2, g0:g1 + 1, 1, o0:o0 + n].all(axis=0)
+            want = sum(int(b) << q for q, b in enumerate(run))
+            assert got == want, (g0, g1, o0)
 
 
 def test_bit_packed_chunks_read_back_every_voxel():
@@ -224,7 +233,7 @@ def test_the_normal_window_is_the_same_whatever_the_chunking():
     # settle, also masks of two words), and row masks saying nothing (every row is read).
     views = [window_view(*resident(vol, chunks))
              for chunks in [(48, 100, 48), (16, 24, 20), (20, 13, 64), (16, 100, 20)]]
-    views.append(window_view(*resident(vol, (48, 100, 48)), masks=np.zeros((1, 48, 2, 2), np.uint64)))
+    views.append(window_view(*resident(vol, (48, 100, 48)), masks=np.zeros((1, 48, 3, 2, 2), np.uint64)))
     scratch = K.window_scratch(5.25)
     pts = np.column_stack([rng.uniform(-2, 50, 400), rng.uniform(-2, 102, 400), rng.uniform(-2, 50, 400)])
     for x in pts:

@@ -21,14 +21,15 @@ from numba.extending import intrinsic
 from ..microstructure._rng import uniform
 
 @intrinsic
-def prefetch(typingctx, arr, i, j, k, m):
-    """Ask the CPU to start loading the cache line of arr[i, j, k, m] (a 4-D array)."""
-    sig = types.void(arr, i, j, k, m)
+def prefetch(typingctx, arr, index):
+    """Ask the CPU to start loading the cache line of arr[index] (index: a tuple of arr.ndim integers)."""
+    sig = types.void(arr, index)
 
     def codegen(context, builder, signature, args):
         aryty = signature.args[0]
         ary = context.make_array(aryty)(context, builder, args[0])
-        idx = [context.cast(builder, v, t, types.intp) for v, t in zip(args[1:], signature.args[1:])]
+        idx = [context.cast(builder, v, t, types.intp)
+               for v, t in zip(cgutils.unpack_tuple(builder, args[1]), signature.args[1])]
         ptr = cgutils.get_item_pointer(context, builder, aryty, ary, idx, wraparound=False)
         i8p = ir.IntType(8).as_pointer()
         i32 = ir.IntType(32)
@@ -137,46 +138,76 @@ def _pack_words(words, out):
     if nR < out.shape[0] or nT < out.shape[1] or n8 < 8 * out.shape[2]:
         out[:] = 0
     seen = np.uint64(0)
+    whole = min(n8 // 8, out.shape[2])
+    top = np.uint64(56)
     for i in range(nR):
         for j in range(nT):
-            for w in range(out.shape[2]):
+            row = words[i, j]
+            for w in range(whole):
+                # Eight bytes at a time, unrolled: one multiply gathers each word's bits.
+                x0 = row[8 * w]
+                x1 = row[8 * w + 1]
+                x2 = row[8 * w + 2]
+                x3 = row[8 * w + 3]
+                x4 = row[8 * w + 4]
+                x5 = row[8 * w + 5]
+                x6 = row[8 * w + 6]
+                x7 = row[8 * w + 7]
+                seen |= x0 | x1 | x2 | x3 | x4 | x5 | x6 | x7
+                out[i, j, w] = (((x0 * _GATHER) >> top) | (((x1 * _GATHER) >> top) << np.uint64(8))
+                                | (((x2 * _GATHER) >> top) << np.uint64(16))
+                                | (((x3 * _GATHER) >> top) << np.uint64(24))
+                                | (((x4 * _GATHER) >> top) << np.uint64(32))
+                                | (((x5 * _GATHER) >> top) << np.uint64(40))
+                                | (((x6 * _GATHER) >> top) << np.uint64(48))
+                                | (((x7 * _GATHER) >> top) << np.uint64(56)))
+            for w in range(whole, out.shape[2]):
                 acc = np.uint64(0)
                 for b in range(min(8, n8 - 8 * w)):
-                    x = words[i, j, 8 * w + b]
+                    x = row[8 * w + b]
                     seen |= x
-                    acc |= ((x * _GATHER) >> np.uint64(56)) << np.uint64(8 * b)
+                    acc |= ((x * _GATHER) >> top) << np.uint64(8 * b)
                 out[i, j, w] = acc
     return (seen & ~_LOW_BITS) == 0
 
 
+MASK_SEG = 16  # L voxels per segment of the row masks (divides 64)
+
+
+def mask_segments(n_l):
+    """Segments of MASK_SEG voxels in a chunk row of n_l voxels (the last one may be shorter)."""
+    return -(-n_l // MASK_SEG)
+
+
 @njit(cache=True, nogil=True)
 def row_masks(bits, n_l, out):
-    """Which L rows of a packed chunk are all wall or all polymer, as bits along T.
+    """Which L rows of a packed chunk are all wall or all polymer over each L segment, as bits along T.
 
-    out[i, 0, w] bit b: row (i, 64·w + b) is all wall over the chunk's ``n_l``
-    voxels; out[i, 1, w]: all polymer.  The normal window skips such rows, or
-    adds their weights without reading them.  The padding of a partial chunk
-    reads as polymer, so its rows are never all wall.
+    out[i, s, 0, w] bit b: row (i, 64·w + b) is all wall over segment s, the
+    voxels [MASK_SEG·s, MASK_SEG·(s + 1)) of the chunk's ``n_l``;
+    out[i, s, 1, w]: all polymer there.  The normal window skips such rows,
+    or adds their weights without reading them, when every segment its L
+    range meets says so (a row of wood varies slowly along the fibres: over
+    16 voxels it is uniform where over a whole chunk it often is not).  The
+    padding of a partial chunk reads as polymer, so its rows are never all
+    wall there.
     """
     nT = bits.shape[1]
-    nw = bits.shape[2]
-    tail = n_l - 64 * (nw - 1)
-    last = np.uint64(0xFFFFFFFFFFFFFFFF) if tail >= 64 else (np.uint64(1) << np.uint64(tail)) - np.uint64(1)
     for i in range(bits.shape[0]):
-        for w in range(out.shape[2]):
-            out[i, 0, w] = 0
-            out[i, 1, w] = 0
-        for j in range(nT):
-            full = (bits[i, j, nw - 1] & last) == last
-            empty = bits[i, j, nw - 1] == 0
-            for q in range(nw - 1):
-                full = full and bits[i, j, q] == np.uint64(0xFFFFFFFFFFFFFFFF)
-                empty = empty and bits[i, j, q] == 0
-            bit = np.uint64(1) << np.uint64(j & 63)
-            if full:
-                out[i, 0, j >> 6] |= bit
-            if empty:
-                out[i, 1, j >> 6] |= bit
+        for s in range(out.shape[1]):
+            a = MASK_SEG * s
+            word = a >> 6
+            sh = np.uint64(a & 63)
+            m = (np.uint64(1) << np.uint64(min(MASK_SEG, n_l - a))) - np.uint64(1)
+            for w in range(out.shape[3]):
+                full = np.uint64(0)
+                empty = np.uint64(0)
+                for b in range(min(64, nT - 64 * w)):
+                    v = (bits[i, 64 * w + b, word] >> sh) & m
+                    full |= np.uint64(v == m) << np.uint64(b)
+                    empty |= np.uint64(v == 0) << np.uint64(b)
+                out[i, s, 0, w] = full
+                out[i, s, 1, w] = empty
 
 
 @njit(cache=True, nogil=True)
@@ -255,7 +286,7 @@ def _normalise(v):
 # --------------------------------------------------------------------------
 # Normal estimation: gradient of the Gaussian-smoothed wall indicator
 # --------------------------------------------------------------------------
-PART_BITS = 5  # a window's partial rows are summed through tables of at most 2**5 entries
+PART_BITS = 5  # a mixed row's L weights are summed in parts of at most 5 window positions
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -267,36 +298,12 @@ def window_size(radius):
 def window_scratch(radius):
     """Scratch arrays of smoothed_wall for a window radius (allocated once per trace).
 
-    wts: weights and moments; tab: sum tables of partial rows; segs: per-axis
-    chunk and offset tables (rows 0-13), the window's index bounds (14, 15)
-    and the mixed rows of an R plane (16, 17); slots: the chunks it reads.
+    wts: weights and moments; segs: per-axis chunk and offset tables (rows
+    0-13), the window's index bounds (14, 15) and the mixed rows of an R
+    plane (16, 17); slots: the chunks it reads.
     """
     n = int(window_size(radius))
-    parts = -(-n // PART_BITS)
-    width = -(-n // parts)
-    return (np.zeros((14, max(n, 6))), np.zeros((3, parts, 1 << width)), np.zeros((18, max(n, 3)), np.int64),
-            np.zeros((n, n, n), np.int64))
-
-
-@njit(cache=True, nogil=True)
-def _sum_tables(wts, tab, n, width):
-    """Sum tables over the L weights (rows 2, 5, 8 of wts): entry p of part t is
-    the sum of the weights of the bits set in p (bit b = window position
-    t·width + b), built by doubling."""
-    for t in range(tab.shape[1]):
-        tab[0, t, 0] = 0.0
-        tab[1, t, 0] = 0.0
-        tab[2, t, 0] = 0.0
-        for hb in range(width):
-            q = t * width + hb
-            w = wts[2, q] if q < n else 0.0
-            m = wts[5, q] if q < n else 0.0
-            m2 = wts[8, q] if q < n else 0.0
-            top = 1 << hb
-            for p in range(top):
-                tab[0, t, top + p] = tab[0, t, p] + w
-                tab[1, t, top + p] = tab[1, t, p] + m
-                tab[2, t, top + p] = tab[2, t, p] + m2
+    return np.zeros((14, max(n, 6))), np.zeros((18, max(n, 3)), np.int64), np.zeros((n, n, n), np.int64)
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -324,29 +331,34 @@ def _prefetch_window(bits, masks, table, box, cs, shape, start, n):
     slot = table[a, b, c]
     if slot < 0:
         return
-    mstep = max(1, 4 // masks.shape[3])  # R planes per 64-byte line of row masks
-    for q in range(0, n + mstep - 1, mstep):
-        prefetch(masks, slot, oi + min(q, n - 1), 0, 0)
-    word = (k0 - ck * cs[2]) >> 6
+    ok = k0 - ck * cs[2]
+    seg = min(max(ok, 0) // MASK_SEG, masks.shape[2] - 1)
+    for q in range(n):
+        prefetch(masks, (slot, oi + q, seg, 0, oj >> 6))
+    word = ok >> 6
     step = max(1, 8 // bits.shape[3])  # rows per 64-byte line
     for q in range(n):
         for r in range(0, n + step - 1, step):
-            prefetch(bits, slot, oi + q, oj + min(r, n - 1), word)
+            prefetch(bits, (slot, oi + q, oj + min(r, n - 1), word))
 
 
 @njit(inline="always", cache=True, nogil=True)
-def _mask_run(masks, slot, oi, kind, o0):
-    """Bits o0, o0 + 1, ... of the row mask ``kind`` of R plane ``oi`` of a slot, from bit 0."""
+def _mask_run(masks, slot, oi, g0, g1, kind, o0):
+    """Bits o0, o0 + 1, ... of the row mask ``kind`` of R plane ``oi`` of a slot, from bit 0,
+    over L segments g0 to g1: a row counts where it does in every one."""
     w = o0 >> 6
     sh = o0 & 63
-    v = masks[slot, oi, kind, w] >> np.uint64(sh)
-    if sh and w + 1 < masks.shape[3]:
-        v |= masks[slot, oi, kind, w + 1] << np.uint64(64 - sh)
-    return v
+    out = np.uint64(0xFFFFFFFFFFFFFFFF)
+    for g in range(g0, g1 + 1):
+        v = masks[slot, oi, g, kind, w] >> np.uint64(sh)
+        if sh and w + 1 < masks.shape[4]:
+            v |= masks[slot, oi, g, kind, w + 1] << np.uint64(64 - sh)
+        out &= v
+    return out
 
 
 @njit(cache=True, nogil=True)
-def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, hess, wts, tab, segs, slots):
+def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, hess, wts, segs, slots):
     """S(x) = (G_σ * χ_wall)(x) / ΣG, its gradient (into ``grad``) and Hessian.
 
     ``hess`` receives the Hessian's RR, TT, LL, RT, RL, TL components.
@@ -356,9 +368,8 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
     Wood is nearly uniform along its fibres, so most rows are all wall or
     all polymer: the chunks' row ``masks`` (row_masks) name many of them
     without a read, the others cost one word read, and the few mixed ones
-    are summed through tables of the window's L weights indexed by their
-    bit pattern.
-    ``wts``, ``tab``, ``segs`` and ``slots`` are scratch (window_scratch).
+    are summed over their set bits.
+    ``wts``, ``segs`` and ``slots`` are scratch (window_scratch).
     Returns S in [0, 1], or -1.0 when a needed chunk is not resident.
     """
     n = window_size(radius)
@@ -472,12 +483,12 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
                 if slot == -1:
                     return -1.0
                 slots[sg, ua, ub] = slot
-    # Rows that are neither all wall nor all polymer are summed through tables
-    # (_sum_tables), built when the first such row comes.
-    parts = tab.shape[1]
+    # Rows that are neither all wall nor all polymer are summed over their set
+    # bits in parts of ``width`` window positions (the order the cached
+    # results of TRACER_VERSION 3 were made in).
+    parts = (n + PART_BITS - 1) // PART_BITS
     width = (n + parts - 1) // parts
     pmask = np.uint64((1 << width) - 1)
-    tabled = False
     full = ((np.uint64(1) << np.uint64(hi[2] + 1)) - np.uint64(1)) & ~((np.uint64(1) << np.uint64(lo[2]))
                                                                        - np.uint64(1))
     if nseg == 1:
@@ -505,6 +516,9 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
     simple = nseg == 1 and nch1 == 1 and segs[3, hi[1]] - segs[3, lo[1]] == hi[1] - lo[1]
     oj0 = segs[3, lo[1]] - lo[1]
     rows_all = (np.uint64(1) << np.uint64(hi[1] - lo[1] + 1)) - np.uint64(1)
+    # The L segments of the row masks that the window's one L run meets.
+    g0 = segs[7, 0] // MASK_SEG
+    g1 = (segs[7, 0] + segs[8, 0] - 1) // MASK_SEG
     mword = segs[3, lo[1]] >> 6
     msh = np.uint64(segs[3, lo[1]] & 63)
     mtwo = (segs[3, lo[1]] & 63) + hi[1] - lo[1] + 1 > 64
@@ -533,11 +547,16 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
             slot = slots[0, ua, 0]
             if slot < 0:  # -2: outside a finite volume, not wall
                 continue
-            known = masks[slot, oi, 0, mword] >> msh
-            poly = masks[slot, oi, 1, mword] >> msh
-            if mtwo:
-                known |= masks[slot, oi, 0, mword + 1] << mback
-                poly |= masks[slot, oi, 1, mword + 1] << mback
+            known = rows_all
+            poly = rows_all
+            for g in range(g0, g1 + 1):
+                kw = masks[slot, oi, g, 0, mword] >> msh
+                pw = masks[slot, oi, g, 1, mword] >> msh
+                if mtwo:
+                    kw |= masks[slot, oi, g, 0, mword + 1] << mback
+                    pw |= masks[slot, oi, g, 1, mword + 1] << mback
+                known &= kw
+                poly &= pw
             todo &= ~poly
             known &= todo
         else:
@@ -558,8 +577,10 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
                     if slot < 0:  # -2: outside a finite volume, reads as polymer
                         kw = np.uint64(0)
                         continue
-                    kw &= _mask_run(masks, slot, oi, 0, o0)
-                    pw &= _mask_run(masks, slot, oi, 1, o0)
+                    g0 = segs[7, sg] // MASK_SEG
+                    g1 = (segs[7, sg] + segs[8, sg] - 1) // MASK_SEG
+                    kw &= _mask_run(masks, slot, oi, g0, g1, 0, o0)
+                    pw &= _mask_run(masks, slot, oi, g0, g1, 1, o0)
                 known |= kw << np.uint64(p0 - lo[1])
                 poly |= pw << np.uint64(p0 - lo[1])
             todo &= ~poly
@@ -613,29 +634,34 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
             segs[16, nmix] = b
             segs[17, nmix] = np.int64(pat)
             nmix += 1
-        if nmix:
-            if not tabled:
-                _sum_tables(wts, tab, n, width)
-                tabled = True
-            for e in range(nmix):
-                b = segs[16, e]
-                pat = np.uint64(segs[17, e])
-                sl = 0.0
-                sdl = 0.0
-                s2l = 0.0
-                for t in range(parts):
-                    idx = (pat >> np.uint64(t * width)) & pmask
-                    sl += tab[0, t, idx]
-                    sdl += tab[1, t, idx]
-                    s2l += tab[2, t, idx]
-                wy = wts[1, b]
-                dy = wts[4, b]
-                q0 += wy * sl
-                q1 += dy * sl
-                q2 += wy * sdl
-                q3 += wts[7, b] * sl
-                q4 += wy * s2l
-                q5 += dy * sdl
+        for e in range(nmix):
+            b = segs[16, e]
+            pat = np.uint64(segs[17, e])
+            sl = 0.0
+            sdl = 0.0
+            s2l = 0.0
+            for t in range(parts):
+                part = (pat >> np.uint64(t * width)) & pmask
+                p0 = 0.0
+                p1 = 0.0
+                p2 = 0.0
+                while part:
+                    q = t * width + np.int64(cttz(part))
+                    part &= part - np.uint64(1)
+                    p0 += wts[2, q]
+                    p1 += wts[5, q]
+                    p2 += wts[8, q]
+                sl += p0
+                sdl += p1
+                s2l += p2
+            wy = wts[1, b]
+            dy = wts[4, b]
+            q0 += wy * sl
+            q1 += dy * sl
+            q2 += wy * sdl
+            q3 += wts[7, b] * sl
+            q4 += wy * s2l
+            q5 += dy * sdl
         # The all-wall rows, whose L sums are the window's (sw, sd, s2w).
         q0 += fw * sw[2]
         q1 += fd * sw[2]
@@ -682,8 +708,8 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
 
 
 @njit(cache=True, nogil=True)
-def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, newton, refit, out, wts, tab,
-                   segs, slots):
+def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, newton, refit, out, wts, segs,
+                   slots):
     """Normal where the ray meets the smoothed wall surface S = 1/2 near face point xf.
 
     Up to ``newton`` Newton steps along the ray (at most NEWTON_REACH from xf)
@@ -698,7 +724,7 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
     hess = wts[13]
     for q in range(3):
         x[q] = xf[q]
-    S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, tab, segs, slots)
+    S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, segs, slots)
     if S < 0.0:
         return -1
     t = 0.0  # where the point is along the ray
@@ -721,8 +747,8 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
         if it < refit:
             for q in range(3):
                 x[q] = xf[q] + t * d[q]
-            S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, tab,
-                              segs, slots)
+            S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, segs,
+                              slots)
             if S < 0.0:
                 return -1
             te = t
@@ -768,7 +794,7 @@ def _interface(d, nrm, medium, n_wall, n_poly, fresnel, seed, ray_id, event, new
 @njit(cache=True, nogil=True)
 def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
           ray_ids, bits, masks, table, box, cs, shape, method, step, sigma, radius, newton, refit,
-          n_wall, n_poly, fresnel, seed, max_events, wts, tab, segs, slots):
+          n_wall, n_poly, fresnel, seed, max_events, wts, segs, slots):
     """Advance every ACTIVE / paused ray as far as the resident chunks allow.
 
     Per ray: pos (3) float64, dirs (3) unit float64, medium 0/1, vox (3) int64
@@ -779,7 +805,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
     NEEDS_NORMAL ray, whose normal arrives in ``normals``.
     bits, masks, table, box : the resident chunks, bit-packed (pack_chunk), their
     row masks (row_masks) and the table of their slots (ChunkCache);
-    wts, tab, segs, slots : smoothed_wall's
+    wts, segs, slots : smoothed_wall's
     scratch (window_scratch).
     shape : (nR, nT, nL); nR or nL = 0 means unbounded along that axis.
     """
@@ -818,7 +844,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
             if method == EXACT:
                 _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
                        bits, masks, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly,
-                       fresnel, seed, max_events, wts, tab, segs, slots, d, x, newd, nrm)
+                       fresnel, seed, max_events, wts, segs, slots, d, x, newd, nrm)
                 break
             else:
                 # Paper: fixed steps; a phase change between two samples is an
@@ -888,7 +914,7 @@ def _step(v, o, c, s, n):
 @njit(cache=True, nogil=True)
 def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
            bits, masks, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly, fresnel,
-           seed, max_events, wts, tab, segs, slots, d, x, newd, nrm):
+           seed, max_events, wts, segs, slots, d, x, newd, nrm):
     """Exact voxel traversal of ray r until it leaves, pauses or is trapped.
 
     A straight segment runs from pos[r] (the last interface, or the entry
@@ -987,7 +1013,7 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
                 ok = 2
             else:
                 ok = surface_normal(bits, masks, table, box, cs, shape, x, d, sigma, radius, newton, refit,
-                                    nrm, wts, tab, segs, slots)
+                                    nrm, wts, segs, slots)
             if ok < 0:
                 if not _request_neighbourhood(bits, table, box, cs, shape, x, d, radius, request, r):
                     raise RuntimeError("normal window needs a chunk the request cannot name")

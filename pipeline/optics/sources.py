@@ -135,7 +135,7 @@ class ChunkCache:
         self.tick = 0
         # One bit per voxel (K.pack_chunk): 1/8 of the chunks' bytes; pages on use.
         self.bits = np.empty((max(1, self.capacity),) + self._bits_shape, np.uint64)
-        # Per slot and R index, the all-wall and all-polymer L rows as bits along T (K.row_masks).
+        # Per slot, R index and L segment, the all-wall and all-polymer rows as bits along T (K.row_masks).
         self.masks = np.empty((max(1, self.capacity),) + self._masks_shape, np.uint64)
         self.free = list(range(self.capacity))[::-1]
         self.loads = 0
@@ -149,7 +149,7 @@ class ChunkCache:
     @property
     def _masks_shape(self) -> tuple:
         cR, cT, cL = self.source.chunks
-        return (cR, 2, -(-cT // 64))
+        return (cR, K.mask_segments(cL), 2, -(-cT // 64))
 
     @property
     def chunk_shape(self) -> np.ndarray:
