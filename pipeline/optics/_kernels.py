@@ -211,6 +211,16 @@ def row_masks(bits, n_l, out):
 
 
 @njit(cache=True, nogil=True)
+def mark_boxes(lo, hi, grid):
+    """grid[i, j, k] = True in every box [lo[r], hi[r]] (inclusive; empty where hi < lo)."""
+    for r in range(lo.shape[0]):
+        for i in range(lo[r, 0], hi[r, 0] + 1):
+            for j in range(lo[r, 1], hi[r, 1] + 1):
+                for k in range(lo[r, 2], hi[r, 2] + 1):
+                    grid[i, j, k] = True
+
+
+@njit(cache=True, nogil=True)
 def phases_at(bits, table, box, cs, shape, vox, out):
     """out[r] = voxel_at(vox[r]): the phase each ray starts in (or MISSING, OUTSIDE)."""
     for r in range(vox.shape[0]):

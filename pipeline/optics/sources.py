@@ -178,7 +178,7 @@ class ChunkCache:
         than thrash.
         """
         self.tick += 1
-        keys = list(dict.fromkeys(tuple(int(v) for v in k) for k in keys))
+        keys = list(dict.fromkeys(tuple(map(int, k)) for k in keys))
         protected = set(keys)
         protected.update(keep)  # (i, j, k) tuples of ints
         for k in protected:

@@ -184,16 +184,26 @@ def _unique_rows(idx: np.ndarray) -> np.ndarray:
 
 
 def _chunks_of_boxes(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """The distinct chunks (rows) of the boxes of chunks [lo, hi] (inclusive, (N, 3) each),
+    """The distinct chunks (rows, sorted) of the boxes of chunks [lo, hi] (inclusive, (N, 3) each),
     leaving out those before the entrance face (T < 0)."""
-    lo = lo.copy()
+    lo = np.ascontiguousarray(lo, np.int64).copy()
+    hi = np.ascontiguousarray(hi, np.int64)
     lo[:, 1] = np.maximum(lo[:, 1], 0)
-    span = (hi - lo).max(axis=0, initial=0)
-    parts = []
-    for d in itertools.product(*(range(int(s) + 1) for s in span)):
-        c = lo + np.asarray(d)
-        parts.append(c[np.all(c <= hi, axis=1)])
-    return _unique_rows(np.concatenate(parts) if parts else lo)
+    if len(lo) == 0:
+        return lo.reshape(0, 3)
+    base = lo.min(axis=0)
+    extent = np.maximum(hi.max(axis=0) - base + 1, 1)
+    if np.prod(extent) > 1 << 24:
+        # Boxes strewn far apart: list them one offset at a time.
+        span = (hi - lo).max(axis=0, initial=0)
+        parts = []
+        for d in itertools.product(*(range(int(s) + 1) for s in span)):
+            c = lo + np.asarray(d)
+            parts.append(c[np.all(c <= hi, axis=1)])
+        return _unique_rows(np.concatenate(parts))
+    grid = np.zeros(tuple(extent), np.bool_)
+    K.mark_boxes(lo - base, hi - base, grid)
+    return np.argwhere(grid) + base
 
 
 def _enter(dirs: np.ndarray, status: np.ndarray, n_in: np.ndarray, n_out: float) -> None:
