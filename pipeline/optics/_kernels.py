@@ -367,6 +367,12 @@ def _mask_run(masks, slot, oi, g0, g1, kind, o0):
     return out
 
 
+@njit(inline="always", cache=True, nogil=True)
+def _add_rows(q0, q1, q2, q3, q4, q5, wy, dy, d2y, sl, sdl, s2l):
+    """An R plane's sums plus rows of T weights wy, a·wy, a²·wy whose L sums are sl, sdl, s2l."""
+    return (q0 + wy * sl, q1 + dy * sl, q2 + wy * sdl, q3 + d2y * sl, q4 + wy * s2l, q5 + dy * sdl)
+
+
 @njit(cache=True, nogil=True)
 def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, hess, wts, segs, slots):
     """S(x) = (G_σ * χ_wall)(x) / ΣG, its gradient (into ``grad``) and Hessian.
@@ -664,21 +670,10 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
                 sl += p0
                 sdl += p1
                 s2l += p2
-            wy = wts[1, b]
-            dy = wts[4, b]
-            q0 += wy * sl
-            q1 += dy * sl
-            q2 += wy * sdl
-            q3 += wts[7, b] * sl
-            q4 += wy * s2l
-            q5 += dy * sdl
+            q0, q1, q2, q3, q4, q5 = _add_rows(q0, q1, q2, q3, q4, q5, wts[1, b], wts[4, b], wts[7, b],
+                                               sl, sdl, s2l)
         # The all-wall rows, whose L sums are the window's (sw, sd, s2w).
-        q0 += fw * sw[2]
-        q1 += fd * sw[2]
-        q2 += fw * sd[2]
-        q3 += fd2 * sw[2]
-        q4 += fw * s2w[2]
-        q5 += fd * sd[2]
+        q0, q1, q2, q3, q4, q5 = _add_rows(q0, q1, q2, q3, q4, q5, fw, fd, fd2, sw[2], sd[2], s2w[2])
         dx = wts[3, a]
         m0 += wx * q0
         m1x += dx * q0
