@@ -172,26 +172,39 @@ def test_bit_packed_chunks_read_back_every_voxel():
 
 
 @pytest.mark.parametrize("shape", [(16, 16, 64), (16, 9, 128), (5, 7, 136), (16, 16, 40), (7, 9, 70)])
-def test_packing_eight_voxels_per_load_equals_packing_voxel_by_voxel(shape):
-    """Chunks are packed from 64-bit loads of 8 voxels: also strided views of a
-    larger volume, rows that are not a multiple of 8 voxels, chunks shorter
-    than the slot (the rest of the slot reads as polymer)."""
+def test_packing_64_voxels_per_compare_equals_packing_voxel_by_voxel(shape):
+    """Chunks are packed from vector compares of 64 voxels: also strided views of
+    a larger volume, rows that are not a multiple of 64 voxels, chunks shorter
+    than the slot (the rest of the slot reads as polymer); the row masks come
+    from the same pass."""
     rng = np.random.default_rng(3)
     big = (rng.random((40, 40, 300)) < 0.45).astype(np.uint8)
-    slot = (16, 16, 3)
+    big[:, ::4, :] = 1  # rows uniform over their L segments
+    big[:, 1::4, 100:] = 0
+    slot, n_l = (16, 16, 3), 136  # the last mask segment: 8 voxels
     for chunk in (big[: shape[0], : shape[1], : shape[2]], big[3:3 + shape[0], 5:5 + shape[1], 8:8 + shape[2]],
-                  big[: shape[0], : shape[1], : 2 * shape[2] : 2], np.ones(shape, np.uint8), np.zeros(shape, np.uint8)):
+                  big[: shape[0], : shape[1], : 2 * shape[2] : 2], np.ones(shape, np.uint8), np.zeros(shape, np.uint8),
+                  np.ones(shape, bool)):
         # Voxel by voxel: bit b of word w of row (i, j) is voxel (i, j, 64 w + b).
         ref = np.zeros(slot, np.uint64)
         for i, j, k in zip(*np.nonzero(chunk)):
             ref[i, j, k // 64] |= np.uint64(1) << np.uint64(k % 64)
         got = np.full(slot, 9, np.uint64)
-        assert K.pack_chunk(chunk, got)
+        masks = np.full((slot[0], K.mask_segments(n_l), 2, 1), 9, np.uint64)
+        assert K.pack_chunk(chunk, got, masks, n_l)
         assert np.array_equal(got, ref)
-    for k in range(8):  # a bad value in any byte of a word is caught
+        padded = np.zeros(slot[:2] + (n_l,), bool)
+        padded[: shape[0], : shape[1], : shape[2]] = chunk
+        flags = np.unpackbits(masks.view(np.uint8), axis=-1, bitorder="little").astype(bool)
+        assert not flags[..., slot[1]:].any()  # no rows beyond the slot
+        for g in range(K.mask_segments(n_l)):
+            part = padded[:, :, g * K.MASK_SEG:(g + 1) * K.MASK_SEG]
+            assert np.array_equal(flags[:, g, 0, : slot[1]], part.all(axis=2)), g
+            assert np.array_equal(flags[:, g, 1, : slot[1]], ~part.any(axis=2)), g
+    for k in range(64):  # a bad value in any byte of a row is caught
         chunk = np.zeros(shape, np.uint8)
-        chunk[2, 3, 16 + k] = (2, 3, 128, 255)[k % 4]
-        assert not K.pack_chunk(chunk, np.zeros(slot, np.uint64))
+        chunk[2, 3, k % shape[2]] = (2, 3, 128, 255)[k % 4]
+        assert not K.pack_chunk(chunk, np.zeros(slot, np.uint64), masks, n_l)
 
 
 def test_a_volume_with_other_values_than_0_and_1_is_refused():

@@ -20,17 +20,23 @@ from numba.extending import intrinsic
 
 from ..microstructure._rng import uniform
 
+
+def _item_pointer(context, builder, signature, args):
+    """Codegen: the pointer to arr[index] of an intrinsic whose first arguments are (arr, index)."""
+    aryty = signature.args[0]
+    ary = context.make_array(aryty)(context, builder, args[0])
+    idx = [context.cast(builder, v, t, types.intp)
+           for v, t in zip(cgutils.unpack_tuple(builder, args[1]), signature.args[1])]
+    return cgutils.get_item_pointer(context, builder, aryty, ary, idx, wraparound=False)
+
+
 @intrinsic
 def prefetch(typingctx, arr, index):
     """Ask the CPU to start loading the cache line of arr[index] (index: a tuple of arr.ndim integers)."""
     sig = types.void(arr, index)
 
     def codegen(context, builder, signature, args):
-        aryty = signature.args[0]
-        ary = context.make_array(aryty)(context, builder, args[0])
-        idx = [context.cast(builder, v, t, types.intp)
-               for v, t in zip(cgutils.unpack_tuple(builder, args[1]), signature.args[1])]
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, idx, wraparound=False)
+        ptr = _item_pointer(context, builder, signature, args)
         i8p = ir.IntType(8).as_pointer()
         i32 = ir.IntType(32)
         fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p],
@@ -99,78 +105,6 @@ def voxel_at(bits, table, box, cs, shape, i, j, k):
     return np.uint8((bits[s, i - ci * cs[0], j - cj * cs[1], ok >> 6] >> np.uint64(ok & 63)) & np.uint64(1))
 
 
-def pack_chunk(chunk, out):
-    """Bit-pack the voxels [R, T, L] of a chunk (1 = wall) into out [R, T, word].
-
-    Bit b of word w of row (i, j) is voxel (i, j, 64·w + b): rows run along
-    L, the fibre axis, so a row of a normal window is one or two word reads
-    and usually all wall or all polymer.  ``chunk`` may be smaller than the
-    chunk shape (the last chunks of a finite volume): the rest reads as
-    polymer, and the kernels treat it as outside.  Returns False if a voxel
-    is neither 0 nor 1 (``out`` is then not a packing of the chunk).
-    """
-    if chunk.dtype != np.uint8:
-        if chunk.dtype != np.bool_ and np.any((chunk != 0) & (chunk != 1)):
-            return False
-        chunk = chunk.astype(np.uint8)
-    nL = chunk.shape[2]
-    if nL % 8 or chunk.strides[2] != 1:
-        # Rows of whole 64-bit words, contiguous along L (the padding reads as polymer).
-        padded = np.zeros(chunk.shape[:2] + (-(-nL // 8) * 8,), np.uint8)
-        padded[:, :, :nL] = chunk
-        chunk = padded
-    return _pack_words(chunk.view(np.uint64), out)
-
-
-# Gathers bit 0 of each byte of a word into the top byte: byte k -> bit 56 + k
-# (the 64 partial products land on distinct bits, so nothing carries).
-_GATHER = np.uint64(0x0102040810204080)
-_LOW_BITS = np.uint64(0x0101010101010101)
-
-
-@njit(cache=True, nogil=True)
-def _pack_words(words, out):
-    """pack_chunk of a uint8 chunk seen as uint64 words (8 voxels each along L), in one pass.
-
-    Returns False if a voxel is neither 0 nor 1 (then the gather is garbage).
-    """
-    nR, nT, n8 = words.shape
-    if nR < out.shape[0] or nT < out.shape[1] or n8 < 8 * out.shape[2]:
-        out[:] = 0
-    seen = np.uint64(0)
-    whole = min(n8 // 8, out.shape[2])
-    top = np.uint64(56)
-    for i in range(nR):
-        for j in range(nT):
-            row = words[i, j]
-            for w in range(whole):
-                # Eight bytes at a time, unrolled: one multiply gathers each word's bits.
-                x0 = row[8 * w]
-                x1 = row[8 * w + 1]
-                x2 = row[8 * w + 2]
-                x3 = row[8 * w + 3]
-                x4 = row[8 * w + 4]
-                x5 = row[8 * w + 5]
-                x6 = row[8 * w + 6]
-                x7 = row[8 * w + 7]
-                seen |= x0 | x1 | x2 | x3 | x4 | x5 | x6 | x7
-                out[i, j, w] = (((x0 * _GATHER) >> top) | (((x1 * _GATHER) >> top) << np.uint64(8))
-                                | (((x2 * _GATHER) >> top) << np.uint64(16))
-                                | (((x3 * _GATHER) >> top) << np.uint64(24))
-                                | (((x4 * _GATHER) >> top) << np.uint64(32))
-                                | (((x5 * _GATHER) >> top) << np.uint64(40))
-                                | (((x6 * _GATHER) >> top) << np.uint64(48))
-                                | (((x7 * _GATHER) >> top) << np.uint64(56)))
-            for w in range(whole, out.shape[2]):
-                acc = np.uint64(0)
-                for b in range(min(8, n8 - 8 * w)):
-                    x = row[8 * w + b]
-                    seen |= x
-                    acc |= ((x * _GATHER) >> top) << np.uint64(8 * b)
-                out[i, j, w] = acc
-    return (seen & ~_LOW_BITS) == 0
-
-
 MASK_SEG = 16  # L voxels per segment of the row masks (divides 64)
 
 
@@ -179,35 +113,126 @@ def mask_segments(n_l):
     return -(-n_l // MASK_SEG)
 
 
-@njit(cache=True, nogil=True)
-def row_masks(bits, n_l, out):
-    """Which L rows of a packed chunk are all wall or all polymer over each L segment, as bits along T.
+def pack_chunk(chunk, out, masks, n_l):
+    """Bit-pack the voxels [R, T, L] of a chunk (1 = wall) into out [R, T, word],
+    and name its uniform rows in ``masks``.
 
-    out[i, s, 0, w] bit b: row (i, 64·w + b) is all wall over segment s, the
-    voxels [MASK_SEG·s, MASK_SEG·(s + 1)) of the chunk's ``n_l``;
-    out[i, s, 1, w]: all polymer there.  The normal window skips such rows,
-    or adds their weights without reading them, when every segment its L
-    range meets says so (a row of wood varies slowly along the fibres: over
-    16 voxels it is uniform where over a whole chunk it often is not).  The
-    padding of a partial chunk reads as polymer, so its rows are never all
-    wall there.
+    Bit b of word w of row (i, j) is voxel (i, j, 64·w + b): rows run along
+    L, the fibre axis, so a row of a normal window is one or two word reads
+    and usually all wall or all polymer.  ``chunk`` may be smaller than the
+    chunk shape (the last chunks of a finite volume): the rest reads as
+    polymer, and the kernels treat it as outside.
+
+    masks[i, s, 0, w] bit b: row (i, 64·w + b) is all wall over segment s,
+    the voxels [MASK_SEG·s, MASK_SEG·(s + 1)) of the slot's ``n_l`` along L;
+    masks[i, s, 1, w]: all polymer there.  The normal window skips such
+    rows, or adds their weights without reading them, when every segment its
+    L range meets says so (a row of wood varies slowly along the fibres:
+    over 16 voxels it is uniform where over a whole chunk it often is not).
+    The padding of a partial chunk reads as polymer, so its rows are never
+    all wall there.
+
+    Returns False if a voxel is neither 0 nor 1 (``out`` and ``masks`` are
+    then not those of the chunk).
     """
-    nT = bits.shape[1]
-    for i in range(bits.shape[0]):
-        for s in range(out.shape[1]):
+    if chunk.dtype == np.bool_:
+        chunk = chunk.view(np.uint8)
+    elif chunk.dtype != np.uint8:
+        if np.any((chunk != 0) & (chunk != 1)):
+            return False
+        chunk = chunk.astype(np.uint8)
+    if chunk.shape[2] and chunk.strides[2] != 1:
+        chunk = np.ascontiguousarray(chunk)  # rows contiguous along L
+    return _pack_rows(chunk, out, masks, n_l)
+
+
+@intrinsic
+def byte_masks64(typingctx, arr, index):
+    """(nonzero, above one) of the 64 bytes arr[index], arr[index + 1], ... along arr's
+    last, contiguous axis: bit b of each is set where byte b is != 0, > 1.
+
+    One vector compare per 64 bytes, whatever the vector width of the CPU.
+    """
+    sig = types.UniTuple(types.uint64, 2)(arr, index)
+
+    def codegen(context, builder, signature, args):
+        ptr = _item_pointer(context, builder, signature, args)
+        vt = ir.VectorType(ir.IntType(8), 64)
+        v = builder.load(builder.bitcast(ptr, vt.as_pointer()), align=1)
+        i64 = ir.IntType(64)
+        nonzero = builder.bitcast(builder.icmp_unsigned("!=", v, ir.Constant(vt, None)), i64)
+        above = builder.bitcast(builder.icmp_unsigned(">", v, ir.Constant(vt, [1] * 64)), i64)
+        return context.make_tuple(builder, signature.return_type, [nonzero, above])
+
+    return sig, codegen
+
+
+@intrinsic
+def field_flags64(typingctx, arr, index, shift, field):
+    """(all ones, all zero) of a bit field in 64 words arr[index], arr[index + 1], ...
+    along arr's last, contiguous axis: bit b of each is set where
+    (word b >> shift) & field equals ``field``, equals 0."""
+    sig = types.UniTuple(types.uint64, 2)(arr, index, types.uint64, types.uint64)
+
+    def codegen(context, builder, signature, args):
+        ptr = _item_pointer(context, builder, signature, args)
+        i64 = ir.IntType(64)
+        vt = ir.VectorType(i64, 64)
+        v = builder.load(builder.bitcast(ptr, vt.as_pointer()), align=8)
+
+        def splat(x):
+            one = builder.insert_element(ir.Constant(vt, ir.Undefined), x, ir.Constant(ir.IntType(32), 0))
+            return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(ir.IntType(32), 64), [0] * 64))
+
+        f = builder.and_(builder.lshr(v, splat(args[2])), splat(args[3]))
+        ones = builder.bitcast(builder.icmp_unsigned("==", f, splat(args[3])), i64)
+        zero = builder.bitcast(builder.icmp_unsigned("==", f, ir.Constant(vt, None)), i64)
+        return context.make_tuple(builder, signature.return_type, [ones, zero])
+
+    return sig, codegen
+
+
+@njit(cache=True, nogil=True)
+def _pack_rows(chunk, out, masks, n_l):
+    """pack_chunk of a uint8 chunk whose rows are contiguous along L: 64 voxels per
+    compare, then each R plane's row masks 64 rows per compare from a copy of
+    its words laid out along T.  Returns False if a voxel is neither 0 nor 1."""
+    nR, nT, nL = chunk.shape
+    cR, cT, nw = out.shape
+    if nR < cR or nT < cT or nL < 64 * nw:
+        out[:] = 0
+    ntw = masks.shape[3]
+    along_t = np.zeros((nw, 64 * ntw), np.uint64)  # an R plane's words [word, T]
+    bad = np.uint64(0)
+    whole = min(nL // 64, nw)
+    for i in range(cR):
+        if i < nR:
+            for j in range(nT):
+                for w in range(whole):
+                    word, above = byte_masks64(chunk, (i, j, 64 * w))
+                    out[i, j, w] = word
+                    along_t[w, j] = word
+                    bad |= above
+                if whole < nw:
+                    word = np.uint64(0)
+                    for k in range(64 * whole, min(nL, 64 * nw)):
+                        x = chunk[i, j, k]
+                        bad |= np.uint64(x > 1)
+                        word |= np.uint64(x != 0) << np.uint64(k - 64 * whole)
+                    out[i, j, whole] = word
+                    along_t[whole, j] = word
+        elif i == nR:
+            along_t[:] = 0  # the padding planes of a partial chunk
+        for s in range(masks.shape[1]):
             a = MASK_SEG * s
-            word = a >> 6
-            sh = np.uint64(a & 63)
-            m = (np.uint64(1) << np.uint64(min(MASK_SEG, n_l - a))) - np.uint64(1)
-            for w in range(out.shape[3]):
-                full = np.uint64(0)
-                empty = np.uint64(0)
-                for b in range(min(64, nT - 64 * w)):
-                    v = (bits[i, 64 * w + b, word] >> sh) & m
-                    full |= np.uint64(v == m) << np.uint64(b)
-                    empty |= np.uint64(v == 0) << np.uint64(b)
-                out[i, s, 0, w] = full
-                out[i, s, 1, w] = empty
+            field = (np.uint64(1) << np.uint64(min(MASK_SEG, n_l - a))) - np.uint64(1)
+            for tw in range(ntw):
+                full, empty = field_flags64(along_t, (a >> 6, 64 * tw), np.uint64(a & 63), field)
+                if 64 * tw + 64 > cT:  # no rows beyond the slot (their zeros are never full)
+                    empty &= (np.uint64(1) << np.uint64(cT - 64 * tw)) - np.uint64(1)
+                masks[i, s, 0, tw] = full
+                masks[i, s, 1, tw] = empty
+    return bad == 0
 
 
 @njit(cache=True, nogil=True)
@@ -382,7 +407,7 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
     weights; indices beyond the volume are clamped (replicated border).
     Voxels are read as rows along L from the bit-packed chunks (pack_chunk).
     Wood is nearly uniform along its fibres, so most rows are all wall or
-    all polymer: the chunks' row ``masks`` (row_masks) name many of them
+    all polymer: the chunks' row ``masks`` (pack_chunk) name many of them
     without a read, the others cost one word read, and the few mixed ones
     are summed over their set bits.
     ``wts``, ``segs`` and ``slots`` are scratch (window_scratch).
@@ -809,7 +834,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
     NEEDS_CHUNK ray waits for, or (paper mode) the crossing point of a
     NEEDS_NORMAL ray, whose normal arrives in ``normals``.
     bits, masks, table, box : the resident chunks, bit-packed (pack_chunk), their
-    row masks (row_masks) and the table of their slots (ChunkCache);
+    row masks (pack_chunk) and the table of their slots (ChunkCache);
     wts, segs, slots : smoothed_wall's
     scratch (window_scratch).
     shape : (nR, nT, nL); nR or nL = 0 means unbounded along that axis.

@@ -135,7 +135,7 @@ class ChunkCache:
         self.tick = 0
         # One bit per voxel (K.pack_chunk): 1/8 of the chunks' bytes; pages on use.
         self.bits = np.empty((max(1, self.capacity),) + self._bits_shape, np.uint64)
-        # Per slot, R index and L segment, the all-wall and all-polymer rows as bits along T (K.row_masks).
+        # Per slot, R index and L segment, the all-wall and all-polymer rows as bits along T (K.pack_chunk).
         self.masks = np.empty((max(1, self.capacity),) + self._masks_shape, np.uint64)
         self.free = list(range(self.capacity))[::-1]
         self.loads = 0
@@ -202,11 +202,10 @@ class ChunkCache:
         for k in inside:
             s = self.free.pop()
             chunk = np.asarray(chunks.pop(k))
-            if not K.pack_chunk(chunk, self.bits[s]):
+            if not K.pack_chunk(chunk, self.bits[s], self.masks[s], self.source.chunks[2]):
                 bad = chunk[(chunk != 0) & (chunk != 1)]
                 got = f"values up to {bad.max()}" if bad.max() > 1 else f"the value {bad.min()}"
                 raise ParameterError(f"`volume` must hold 0 (polymer) and 1 (wall) only, got {got}")
-            K.row_masks(self.bits[s], self.source.chunks[2], self.masks[s])
             self.slots[k] = s
             self.loads += 1
         self._rebuild()
