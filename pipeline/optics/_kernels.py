@@ -269,7 +269,7 @@ def chunk_of(cs, i, j, k):
 # --------------------------------------------------------------------------
 # Interface physics
 # --------------------------------------------------------------------------
-@njit(cache=True, nogil=True)
+@njit(inline="always", cache=True, nogil=True)
 def refract(d, n, n1, n2, out):
     """Snell refraction or total internal reflection (SPEC.md eq. 1-4).
 
@@ -295,7 +295,7 @@ def refract(d, n, n1, n2, out):
     return False
 
 
-@njit(cache=True, nogil=True)
+@njit(inline="always", cache=True, nogil=True)
 def fresnel_reflectance(cos_i, n1, n2):
     """Unpolarised Fresnel reflectance; 1 beyond the critical angle."""
     eta = n1 / n2
@@ -308,7 +308,7 @@ def fresnel_reflectance(cos_i, n1, n2):
     return 0.5 * (rs * rs + rp * rp)
 
 
-@njit(cache=True, nogil=True)
+@njit(inline="always", cache=True, nogil=True)
 def _normalise(v):
     s = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     if s > 0.0:
@@ -398,7 +398,7 @@ def _add_rows(q0, q1, q2, q3, q4, q5, wy, dy, d2y, sl, sdl, s2l):
     return (q0 + wy * sl, q1 + dy * sl, q2 + wy * sdl, q3 + d2y * sl, q4 + wy * s2l, q5 + dy * sdl)
 
 
-@njit(cache=True, nogil=True)
+@njit(inline="always", cache=True, nogil=True)
 def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, hess, wts, segs, slots):
     """S(x) = (G_σ * χ_wall)(x) / ΣG, its gradient (into ``grad``) and Hessian.
 
@@ -737,7 +737,7 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
     return S
 
 
-@njit(cache=True, nogil=True)
+@njit(inline="always", cache=True, nogil=True)
 def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, newton, refit, out, wts, segs,
                    slots):
     """Normal where the ray meets the smoothed wall surface S = 1/2 near face point xf.
@@ -754,17 +754,25 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
     hess = wts[13]
     for q in range(3):
         x[q] = xf[q]
-    S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, segs, slots)
-    if S < 0.0:
-        return -1
     t = 0.0  # where the point is along the ray
     te = 0.0  # where the window was last evaluated
-    gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
-    hd0 = hess[0] * d[0] + hess[3] * d[1] + hess[4] * d[2]
-    hd1 = hess[3] * d[0] + hess[1] * d[1] + hess[5] * d[2]
-    hd2 = hess[4] * d[0] + hess[5] * d[1] + hess[2] * d[2]
-    dhd = d[0] * hd0 + d[1] * hd1 + d[2] * hd2
-    for it in range(newton):
+    it = 0
+    evaluate = True
+    while True:
+        if evaluate:  # one call site: smoothed_wall is inlined once
+            S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, segs,
+                              slots)
+            if S < 0.0:
+                return -1
+            te = t
+            gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
+            hd0 = hess[0] * d[0] + hess[3] * d[1] + hess[4] * d[2]
+            hd1 = hess[3] * d[0] + hess[1] * d[1] + hess[5] * d[2]
+            hd2 = hess[4] * d[0] + hess[5] * d[1] + hess[2] * d[2]
+            dhd = d[0] * hd0 + d[1] * hd1 + d[2] * hd2
+            evaluate = False
+        if it >= newton:
+            break
         u = t - te
         val = S + u * gd + 0.5 * u * u * dhd
         slope = gd + u * dhd
@@ -777,16 +785,8 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
         if it < refit:
             for q in range(3):
                 x[q] = xf[q] + t * d[q]
-            S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, segs,
-                              slots)
-            if S < 0.0:
-                return -1
-            te = t
-            gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
-            hd0 = hess[0] * d[0] + hess[3] * d[1] + hess[4] * d[2]
-            hd1 = hess[3] * d[0] + hess[1] * d[1] + hess[5] * d[2]
-            hd2 = hess[4] * d[0] + hess[5] * d[1] + hess[2] * d[2]
-            dhd = d[0] * hd0 + d[1] * hd1 + d[2] * hd2
+            evaluate = True
+        it += 1
     u = t - te
     out[0] += u * hd0
     out[1] += u * hd1
@@ -799,7 +799,7 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
 # --------------------------------------------------------------------------
 # The tracer
 # --------------------------------------------------------------------------
-@njit(cache=True, nogil=True)
+@njit(inline="always", cache=True, nogil=True)
 def _interface(d, nrm, medium, n_wall, n_poly, fresnel, seed, ray_id, event, newd):
     """Apply one interface event; returns the medium after it."""
     # Orient the normal to face the incoming ray.
