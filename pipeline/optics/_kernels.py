@@ -446,28 +446,6 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
         sw[ax] = s
         sd[ax] = m
         s2w[ax] = m2
-    # Chunk (relative to the table) and offset of every window index along
-    # each axis, clamped where the volume ends, one division per axis:
-    # segs rows 0-1 (R), 2-3 (T), 4-5 (L).
-    for ax in range(3):
-        prev = np.int64(0)
-        ch = np.int64(0)
-        off = np.int64(0)
-        for q in range(n):
-            i = start[ax] + q
-            if shape[ax] > 0:
-                i = min(max(i, 0), shape[ax] - 1)
-            if q == 0:
-                ch = i // cs[ax]
-                off = i - ch * cs[ax]
-            elif i == prev + 1:
-                off += 1
-                if off == cs[ax]:
-                    off = 0
-                    ch += 1
-            prev = i
-            segs[2 * ax, q] = ch - box[ax]
-            segs[2 * ax + 1, q] = off
     # The window's indices with a non-zero weight, lo[ax] to hi[ax] (its last
     # one or two positions lie beyond the radius): only their chunks are read.
     lo = segs[14]
@@ -481,49 +459,105 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
         while q > lo[ax] and wts[ax, q] == 0.0:
             q -= 1
         hi[ax] = q
-    # The L indices as runs of consecutive voxels in one chunk: segs rows 6-9
-    # (chunk, offset, length, window position).
-    nseg = 0
-    for q in range(lo[2], hi[2] + 1):
-        if (nseg > 0 and segs[4, q] == segs[6, nseg - 1]
-                and segs[5, q] == segs[7, nseg - 1] + segs[8, nseg - 1]):
-            segs[8, nseg - 1] += 1
-        else:
-            segs[6, nseg] = segs[4, q]
-            segs[7, nseg] = segs[5, q]
-            segs[8, nseg] = 1
-            segs[9, nseg] = q
-            nseg += 1
-    # Ordinal of each R and T index's chunk (rows 10, 11; the first index of
-    # each ordinal in rows 12, 13), and the slot of every (L run, R chunk,
-    # T chunk) the window touches; a chunk that is not resident stops here,
-    # before any voxel is read.
-    nch0 = 0
-    nch1 = 0
-    for ax in range(2):
-        u = -1
-        for q in range(lo[ax], hi[ax] + 1):
-            if q == lo[ax] or segs[2 * ax, q] != segs[2 * ax, q - 1]:
-                u += 1
-                segs[12 + ax, u] = q
-            segs[10 + ax, q] = u
-        if ax == 0:
-            nch0 = u + 1
-        else:
-            nch1 = u + 1
-    for sg in range(nseg):
-        tc = segs[6, sg]
-        for ua in range(nch0):
-            ta = segs[0, segs[12, ua]]
-            for ub in range(nch1):
-                tb = segs[2, segs[13, ub]]
-                if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
-                        or tc >= table.shape[2]):
-                    return -1.0
-                slot = table[ta, tb, tc]
-                if slot == -1:
-                    return -1.0
-                slots[sg, ua, ub] = slot
+    # Most windows lie in one chunk, inside the volume: their tables are
+    # filled directly (the same entries the general case makes for them).
+    single = True
+    for ax in range(3):
+        a0 = start[ax] + lo[ax]
+        a1 = start[ax] + hi[ax]
+        if (shape[ax] > 0 and (a0 < 0 or a1 >= shape[ax])) or a0 // cs[ax] != a1 // cs[ax]:
+            single = False
+    if single:
+        ch0 = (start[0] + lo[0]) // cs[0]
+        ch1 = (start[1] + lo[1]) // cs[1]
+        ch2 = (start[2] + lo[2]) // cs[2]
+        ta = ch0 - box[0]
+        tb = ch1 - box[1]
+        tc = ch2 - box[2]
+        if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
+                or tc >= table.shape[2]):
+            return -1.0
+        slot = table[ta, tb, tc]
+        if slot == -1:
+            return -1.0
+        slots[0, 0, 0] = slot
+        off0 = start[0] + lo[0] - ch0 * cs[0]
+        for q in range(lo[0], hi[0] + 1):
+            segs[1, q] = off0 + q - lo[0]
+            segs[10, q] = 0
+        segs[3, lo[1]] = start[1] + lo[1] - ch1 * cs[1]
+        segs[3, hi[1]] = segs[3, lo[1]] + hi[1] - lo[1]
+        segs[7, 0] = start[2] + lo[2] - ch2 * cs[2]
+        segs[8, 0] = hi[2] - lo[2] + 1
+        nseg = 1
+        nch0 = 1
+        nch1 = 1
+    else:
+        # Chunk (relative to the table) and offset of every window index along
+        # each axis, clamped where the volume ends, one division per axis:
+        # segs rows 0-1 (R), 2-3 (T), 4-5 (L).
+        for ax in range(3):
+            prev = np.int64(0)
+            ch = np.int64(0)
+            off = np.int64(0)
+            for q in range(n):
+                i = start[ax] + q
+                if shape[ax] > 0:
+                    i = min(max(i, 0), shape[ax] - 1)
+                if q == 0:
+                    ch = i // cs[ax]
+                    off = i - ch * cs[ax]
+                elif i == prev + 1:
+                    off += 1
+                    if off == cs[ax]:
+                        off = 0
+                        ch += 1
+                prev = i
+                segs[2 * ax, q] = ch - box[ax]
+                segs[2 * ax + 1, q] = off
+        # The L indices as runs of consecutive voxels in one chunk: segs rows 6-9
+        # (chunk, offset, length, window position).
+        nseg = 0
+        for q in range(lo[2], hi[2] + 1):
+            if (nseg > 0 and segs[4, q] == segs[6, nseg - 1]
+                    and segs[5, q] == segs[7, nseg - 1] + segs[8, nseg - 1]):
+                segs[8, nseg - 1] += 1
+            else:
+                segs[6, nseg] = segs[4, q]
+                segs[7, nseg] = segs[5, q]
+                segs[8, nseg] = 1
+                segs[9, nseg] = q
+                nseg += 1
+        # Ordinal of each R and T index's chunk (rows 10, 11; the first index of
+        # each ordinal in rows 12, 13), and the slot of every (L run, R chunk,
+        # T chunk) the window touches; a chunk that is not resident stops here,
+        # before any voxel is read.
+        nch0 = 0
+        nch1 = 0
+        for ax in range(2):
+            u = -1
+            for q in range(lo[ax], hi[ax] + 1):
+                if q == lo[ax] or segs[2 * ax, q] != segs[2 * ax, q - 1]:
+                    u += 1
+                    segs[12 + ax, u] = q
+                segs[10 + ax, q] = u
+            if ax == 0:
+                nch0 = u + 1
+            else:
+                nch1 = u + 1
+        for sg in range(nseg):
+            tc = segs[6, sg]
+            for ua in range(nch0):
+                ta = segs[0, segs[12, ua]]
+                for ub in range(nch1):
+                    tb = segs[2, segs[13, ub]]
+                    if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
+                            or tc >= table.shape[2]):
+                        return -1.0
+                    slot = table[ta, tb, tc]
+                    if slot == -1:
+                        return -1.0
+                    slots[sg, ua, ub] = slot
     # Rows that are neither all wall nor all polymer are summed over their set
     # bits in parts of ``width`` window positions (the order the cached
     # results of TRACER_VERSION 3 were made in).
