@@ -161,6 +161,28 @@ def test_a_run_of_row_mask_bits_is_read_across_mask_words_and_segments():
             assert got == want, (g0, g1, o0)
 
 
+def test_a_cache_reuses_the_last_traces_buffers_but_none_of_its_voxels():
+    """trace_beam hands its chunk buffers to the next cache of the process (no
+    page faults again); what the last trace packed there must not show through."""
+    from pipeline.optics import sources
+
+    rng = np.random.default_rng(8)
+    vol1, vol2 = ((rng.random((40, 50, 70)) < p).astype(np.uint8) for p in (0.7, 0.3))
+    beam = square_beam(60, 30.0, (20, 35), seed=2)
+    sources._SPARE.clear()
+    fresh = trace_beam(ArraySource(vol2, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
+    trace_beam(ArraySource(vol1, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
+    bits = sources._SPARE[-1][0]
+    assert ChunkCache(ArraySource(vol2, chunks=(16, 16, 64)), capacity=8).bits is not bits  # other shape
+    probe = ChunkCache(ArraySource(vol2, chunks=(16, 32, 64)), capacity=8)
+    assert probe.bits is bits
+    probe.release()
+    again = trace_beam(ArraySource(vol2, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
+    assert not sources._SPARE or sources._SPARE[-1][0] is bits  # taken, and given back
+    assert np.array_equal(again.exit_direction, fresh.exit_direction)
+    assert np.array_equal(again.events, fresh.events)
+
+
 def test_bit_packed_chunks_read_back_every_voxel():
     """Chunks are held one bit per voxel in rows along L: rows of 70 voxels take
     two words, last chunks are partly filled, and voxels there read as outside."""

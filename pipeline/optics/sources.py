@@ -9,6 +9,7 @@ simply visit more chunks.
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -120,26 +121,53 @@ def load_volume(path: str | Path):
     raise ParameterError(f"`volume` must be .npy, .zarr or a folder of TIFF slices, got {str(path)!r}")
 
 
+# Buffers of finished caches, reused by the next ChunkCache of this process
+# (a worker traces shard after shard): pages it has written need not be
+# faulted in again.  At most _SPARE_KEPT are kept, the most recent ones.
+_SPARE: list[tuple[np.ndarray, np.ndarray]] = []
+_SPARE_KEPT = 2
+_SPARE_LOCK = threading.Lock()
+
+
 class ChunkCache:
     """The resident chunks, bit-packed (``bits``), and the lookup table the kernels read.
 
-    Keeps at most ``capacity`` chunks, evicting the least recently requested.
+    Keeps at most ``capacity`` chunks (or the slots of the reused buffers,
+    if more), evicting the least recently requested.  :meth:`release` hands
+    the buffers on to the next cache.
     """
 
     def __init__(self, source, capacity: int = 256):
         self.source = source
-        self.capacity = int(capacity)
         self.slots: dict[tuple, int] = {}
         self.outside: set[tuple] = set()
         self.last_use: dict[tuple, int] = {}
         self.tick = 0
         # One bit per voxel (K.pack_chunk): 1/8 of the chunks' bytes; pages on use.
-        self.bits = np.empty((max(1, self.capacity),) + self._bits_shape, np.uint64)
-        # Per slot, R index and L segment, the all-wall and all-polymer rows as bits along T (K.pack_chunk).
-        self.masks = np.empty((max(1, self.capacity),) + self._masks_shape, np.uint64)
+        # Per slot, R index and L segment, the all-wall and all-polymer rows as
+        # bits along T (K.pack_chunk).
+        self.bits, self.masks = self._buffers(max(1, int(capacity)))
+        self.capacity = self.bits.shape[0]
         self.free = list(range(self.capacity))[::-1]
         self.loads = 0
         self._rebuild()
+
+    def _buffers(self, capacity):
+        with _SPARE_LOCK:
+            for q, (bits, masks) in enumerate(_SPARE):
+                if bits.shape[1:] == self._bits_shape and bits.shape[0] >= capacity:
+                    return _SPARE.pop(q)
+        return (np.empty((capacity,) + self._bits_shape, np.uint64),
+                np.empty((capacity,) + self._masks_shape, np.uint64))
+
+    def release(self) -> None:
+        """Give the buffers to the next cache of this process; this one holds nothing after."""
+        bits, masks = self.bits, self.masks
+        self.bits = self.masks = None
+        self.slots.clear()
+        with _SPARE_LOCK:
+            _SPARE.append((bits, masks))
+            del _SPARE[:-_SPARE_KEPT]
 
     @property
     def _bits_shape(self) -> tuple:

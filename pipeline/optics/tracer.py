@@ -298,6 +298,8 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
             w, ok = _svm_normal(box, centre, lo)
             normals[r, :3] = w
             normals[r, 3] = 1.0 if ok else 0.0
+    loads = cache.loads
+    cache.release()  # its buffers serve the next trace of this process
     exit_dirs = dirs.copy()
     if settings.exit == "air":
         done = status == K.TRANSMITTED
@@ -311,4 +313,4 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
         exit_dirs[ok, 2] = tang[ok, 1]
         exit_dirs[ok, 1] = np.sqrt(1.0 - s2[ok])
     return RayResult(pos, dirs, exit_dirs, status.astype(np.int64), events, path, fallbacks,
-                     settings, cache.loads)
+                     settings, loads)
