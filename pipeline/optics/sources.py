@@ -189,14 +189,13 @@ class ChunkCache:
             self.box = np.zeros(3, np.int64)
             self.table = np.full((1, 1, 1), -1, np.int32)
             return
-        lo = np.min(keys, axis=0)
-        hi = np.max(keys, axis=0)
-        self.box = lo.astype(np.int64)
-        self.table = np.full(tuple(hi - lo + 1), -1, np.int32)
-        for k, s in self.slots.items():
-            self.table[tuple(np.subtract(k, lo))] = s
-        for k in self.outside:
-            self.table[tuple(np.subtract(k, lo))] = -2
+        keys = np.array(keys, np.int64)
+        lo = keys.min(axis=0)
+        self.box = lo
+        self.table = np.full(tuple(keys.max(axis=0) - lo + 1), -1, np.int32)
+        rel = keys - lo
+        self.table[rel[:, 0], rel[:, 1], rel[:, 2]] = np.concatenate(
+            [np.fromiter(self.slots.values(), np.int32, len(self.slots)), np.full(len(self.outside), -2, np.int32)])
 
     def require(self, keys, keep=()) -> None:
         """Make the chunks ``keys`` resident (or known to be outside).

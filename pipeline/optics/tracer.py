@@ -266,7 +266,7 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
              else settings.svm_box)
     scratch = K.window_scratch(settings.radius_vox)
     # A ray starts in the phase of the voxel it enters; outside a finite volume it is "side".
-    cache.require(map(tuple, request))
+    cache.require(_unique_rows(request).tolist())
     medium = np.zeros(n, np.uint8)
     K.phases_at(cache.bits, cache.table, cache.box, cs, shape, vox, medium)
     status[medium == K.OUTSIDE] = K.SIDE
