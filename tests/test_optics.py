@@ -213,7 +213,7 @@ def test_packing_64_voxels_per_compare_equals_packing_voxel_by_voxel(shape):
             ref[i, j, k // 64] |= np.uint64(1) << np.uint64(k % 64)
         got = np.full(slot, 9, np.uint64)
         masks = np.full((slot[0], K.mask_segments(n_l), 2, 1), 9, np.uint64)
-        assert K.pack_chunk(chunk, got, masks, n_l)
+        assert K.pack_chunks(chunk, got[None], masks[None], [0], n_l)
         assert np.array_equal(got, ref)
         padded = np.zeros(slot[:2] + (n_l,), bool)
         padded[: shape[0], : shape[1], : shape[2]] = chunk
@@ -226,7 +226,25 @@ def test_packing_64_voxels_per_compare_equals_packing_voxel_by_voxel(shape):
     for k in range(64):  # a bad value in any byte of a row is caught
         chunk = np.zeros(shape, np.uint8)
         chunk[2, 3, k % shape[2]] = (2, 3, 128, 255)[k % 4]
-        assert not K.pack_chunk(chunk, np.zeros(slot, np.uint64), masks, n_l)
+        assert not K.pack_chunks(chunk, np.zeros((1,) + slot, np.uint64), masks[None], [0], n_l)
+
+
+def test_chunks_side_by_side_along_l_are_packed_as_each_alone():
+    """A run of chunks along L is packed in one pass over the volume's rows: each
+    chunk lands in its own slot as if packed alone, the last one partly filled
+    (its second word all padding), and the other slots are left as they were."""
+    rng = np.random.default_rng(9)
+    vol = (rng.random((16, 30, 278)) < 0.5).astype(np.uint8)
+    vol[:, ::3, :] = 1
+    slots, n_l = [5, 1, 3], 128  # chunk q (L from 128 q; the last holds 22 voxels) goes to slots[q]
+    bits = np.full((6, 16, 30, 2), 9, np.uint64)
+    masks = np.full((6, 16, 8, 2, 1), 9, np.uint64)
+    assert K.pack_chunks(vol, bits, masks, slots, n_l)
+    for q, s in enumerate(slots):
+        alone, alone_masks = np.full((1, 16, 30, 2), 7, np.uint64), np.full((1, 16, 8, 2, 1), 7, np.uint64)
+        assert K.pack_chunks(vol[:, :, n_l * q:n_l * (q + 1)], alone, alone_masks, [0], n_l)
+        assert np.array_equal(bits[s], alone[0]) and np.array_equal(masks[s], alone_masks[0]), q
+    assert np.all(bits[[0, 2, 4]] == 9) and np.all(masks[[0, 2, 4]] == 9)
 
 
 def test_a_volume_with_other_values_than_0_and_1_is_refused():

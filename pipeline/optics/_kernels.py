@@ -4,7 +4,7 @@ Coordinates are continuous voxel coordinates along [R, T, L]: voxel
 (i, j, k) occupies [i, i+1) × [j, j+1) × [k, k+1).  The sample spans
 T ∈ [0, nT); a ray leaving through T = nT is transmitted, through T = 0 it
 is reflected back out.  Voxels are read through a table of resident
-chunks, each held bit-packed (one bit per voxel, rows along L: pack_chunk);
+chunks, each held bit-packed (one bit per voxel, rows along L: pack_chunks);
 a ray that needs a chunk that is not resident pauses (status NEEDS_CHUNK)
 with its full state saved, so resuming it later gives bit-identical results
 whatever was resident when.
@@ -113,37 +113,40 @@ def mask_segments(n_l):
     return -(-n_l // MASK_SEG)
 
 
-def pack_chunk(chunk, out, masks, n_l):
-    """Bit-pack the voxels [R, T, L] of a chunk (1 = wall) into out [R, T, word],
-    and name its uniform rows in ``masks``.
+def pack_chunks(voxels, bits, masks, slots, n_l):
+    """Bit-pack chunks lying side by side along L into their slots, and name their uniform rows.
+
+    ``voxels`` [R, T, L] (1 = wall) holds len(slots) chunks of ``n_l`` voxels
+    along L (the last may be shorter): chunk q goes to bits[slots[q]] and
+    masks[slots[q]].  Packed together, the rows of a volume in memory are
+    read in one pass instead of a chunk's piece of each.
 
     Bit b of word w of row (i, j) is voxel (i, j, 64·w + b): rows run along
     L, the fibre axis, so a row of a normal window is one or two word reads
-    and usually all wall or all polymer.  ``chunk`` may be smaller than the
-    chunk shape (the last chunks of a finite volume): the rest reads as
-    polymer, and the kernels treat it as outside.
+    and usually all wall or all polymer.  A chunk may be smaller than the
+    slot (the last chunks of a finite volume): the rest reads as polymer,
+    and the kernels treat it as outside.
 
-    masks[i, s, 0, w] bit b: row (i, 64·w + b) is all wall over segment s,
-    the voxels [MASK_SEG·s, MASK_SEG·(s + 1)) of the slot's ``n_l`` along L;
-    masks[i, s, 1, w]: all polymer there.  The normal window skips such
-    rows, or adds their weights without reading them, when every segment its
-    L range meets says so (a row of wood varies slowly along the fibres:
-    over 16 voxels it is uniform where over a whole chunk it often is not).
-    The padding of a partial chunk reads as polymer, so its rows are never
-    all wall there.
+    masks[slot, i, s, 0, w] bit b: row (i, 64·w + b) is all wall over
+    segment s, the voxels [MASK_SEG·s, MASK_SEG·(s + 1)) of the slot's
+    ``n_l`` along L; masks[slot, i, s, 1, w]: all polymer there.  The normal
+    window skips such rows, or adds their weights without reading them, when
+    every segment its L range meets says so (a row of wood varies slowly
+    along the fibres: over 16 voxels it is uniform where over a whole chunk
+    it often is not).  The padding of a partial chunk reads as polymer, so
+    its rows are never all wall there.
 
-    Returns False if a voxel is neither 0 nor 1 (``out`` and ``masks`` are
-    then not those of the chunk).
+    Returns False if a voxel is neither 0 nor 1 (the slots then hold garbage).
     """
-    if chunk.dtype == np.bool_:
-        chunk = chunk.view(np.uint8)
-    elif chunk.dtype != np.uint8:
-        if np.any((chunk != 0) & (chunk != 1)):
+    if voxels.dtype == np.bool_:
+        voxels = voxels.view(np.uint8)
+    elif voxels.dtype != np.uint8:
+        if np.any((voxels != 0) & (voxels != 1)):
             return False
-        chunk = chunk.astype(np.uint8)
-    if chunk.shape[2] and chunk.strides[2] != 1:
-        chunk = np.ascontiguousarray(chunk)  # rows contiguous along L
-    return _pack_rows(chunk, out, masks, n_l)
+        voxels = voxels.astype(np.uint8)
+    if voxels.shape[2] and voxels.strides[2] != 1:
+        voxels = np.ascontiguousarray(voxels)  # rows contiguous along L
+    return _pack_rows(voxels, bits, masks, np.asarray(slots, np.int64), n_l)
 
 
 @intrinsic
@@ -193,45 +196,51 @@ def field_flags64(typingctx, arr, index, shift, field):
 
 
 @njit(cache=True, nogil=True)
-def _pack_rows(chunk, out, masks, n_l):
-    """pack_chunk of a uint8 chunk whose rows are contiguous along L: 64 voxels per
+def _pack_rows(voxels, bits, masks, slots, n_l):
+    """pack_chunks of uint8 voxels whose rows are contiguous along L: 64 voxels per
     compare, then each R plane's row masks 64 rows per compare from a copy of
     its words laid out along T.  Returns False if a voxel is neither 0 nor 1."""
-    nR, nT, nL = chunk.shape
-    cR, cT, nw = out.shape
-    if nR < cR or nT < cT or nL < 64 * nw:
-        out[:] = 0
-    ntw = masks.shape[3]
-    along_t = np.zeros((nw, 64 * ntw), np.uint64)  # an R plane's words [word, T]
+    nR, nT, n_all = voxels.shape
+    cR, cT, nw = bits.shape[1:]
+    ntw = masks.shape[4]
+    along_t = np.zeros((slots.shape[0], nw, 64 * ntw), np.uint64)  # an R plane's words [chunk, word, T]
+    for q in range(slots.shape[0]):
+        if nR < cR or nT < cT or n_all - q * n_l < 64 * nw:
+            bits[slots[q]] = 0
     bad = np.uint64(0)
-    whole = min(nL // 64, nw)
     for i in range(cR):
         if i < nR:
             for j in range(nT):
-                for w in range(whole):
-                    word, above = byte_masks64(chunk, (i, j, 64 * w))
-                    out[i, j, w] = word
-                    along_t[w, j] = word
-                    bad |= above
-                if whole < nw:
-                    word = np.uint64(0)
-                    for k in range(64 * whole, min(nL, 64 * nw)):
-                        x = chunk[i, j, k]
-                        bad |= np.uint64(x > 1)
-                        word |= np.uint64(x != 0) << np.uint64(k - 64 * whole)
-                    out[i, j, whole] = word
-                    along_t[whole, j] = word
+                for q in range(slots.shape[0]):
+                    out = bits[slots[q], i, j]
+                    at = q * n_l
+                    nL = min(n_l, n_all - at)
+                    whole = min(nL // 64, nw)
+                    for w in range(whole):
+                        word, above = byte_masks64(voxels, (i, j, at + 64 * w))
+                        out[w] = word
+                        along_t[q, w, j] = word
+                        bad |= above
+                    if whole < nw:
+                        word = np.uint64(0)
+                        for k in range(64 * whole, min(nL, 64 * nw)):
+                            x = voxels[i, j, at + k]
+                            bad |= np.uint64(x > 1)
+                            word |= np.uint64(x != 0) << np.uint64(k - 64 * whole)
+                        out[whole] = word
+                        along_t[q, whole, j] = word
         elif i == nR:
-            along_t[:] = 0  # the padding planes of a partial chunk
-        for s in range(masks.shape[1]):
-            a = MASK_SEG * s
-            field = (np.uint64(1) << np.uint64(min(MASK_SEG, n_l - a))) - np.uint64(1)
-            for tw in range(ntw):
-                full, empty = field_flags64(along_t, (a >> 6, 64 * tw), np.uint64(a & 63), field)
-                if 64 * tw + 64 > cT:  # no rows beyond the slot (their zeros are never full)
-                    empty &= (np.uint64(1) << np.uint64(cT - 64 * tw)) - np.uint64(1)
-                masks[i, s, 0, tw] = full
-                masks[i, s, 1, tw] = empty
+            along_t[:] = 0  # the padding planes of partial chunks
+        for q in range(slots.shape[0]):
+            for s in range(masks.shape[2]):
+                a = MASK_SEG * s
+                field = (np.uint64(1) << np.uint64(min(MASK_SEG, n_l - a))) - np.uint64(1)
+                for tw in range(ntw):
+                    full, empty = field_flags64(along_t, (q, a >> 6, 64 * tw), np.uint64(a & 63), field)
+                    if 64 * tw + 64 > cT:  # no rows beyond the slot (their zeros are never full)
+                        empty &= (np.uint64(1) << np.uint64(cT - 64 * tw)) - np.uint64(1)
+                    masks[slots[q], i, s, 0, tw] = full
+                    masks[slots[q], i, s, 1, tw] = empty
     return bad == 0
 
 
@@ -405,9 +414,9 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
     ``hess`` receives the Hessian's RR, TT, LL, RT, RL, TL components.
     The sum runs over the voxels within ``radius`` of x with separable
     weights; indices beyond the volume are clamped (replicated border).
-    Voxels are read as rows along L from the bit-packed chunks (pack_chunk).
+    Voxels are read as rows along L from the bit-packed chunks (pack_chunks).
     Wood is nearly uniform along its fibres, so most rows are all wall or
-    all polymer: the chunks' row ``masks`` (pack_chunk) name many of them
+    all polymer: the chunks' row ``masks`` (pack_chunks) name many of them
     without a read, the others cost one word read, and the few mixed ones
     are summed over their set bits.
     ``wts``, ``segs`` and ``slots`` are scratch (window_scratch).
@@ -867,8 +876,8 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
     direction disagreed with the crossed voxel face.  ``request`` receives the chunk a
     NEEDS_CHUNK ray waits for, or (paper mode) the crossing point of a
     NEEDS_NORMAL ray, whose normal arrives in ``normals``.
-    bits, masks, table, box : the resident chunks, bit-packed (pack_chunk), their
-    row masks (pack_chunk) and the table of their slots (ChunkCache);
+    bits, masks, table, box : the resident chunks, bit-packed (pack_chunks), their
+    row masks (pack_chunks) and the table of their slots (ChunkCache);
     wts, segs, slots : smoothed_wall's
     scratch (window_scratch).
     shape : (nR, nT, nL); nR or nL = 0 means unbounded along that axis.

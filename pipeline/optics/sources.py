@@ -50,6 +50,14 @@ class ArraySource:
     def get_many(self, indices) -> dict:
         return {tuple(int(i) for i in idx): self.get(idx) for idx in indices}
 
+    def get_run(self, idx, count: int) -> np.ndarray:
+        """The voxels of chunks ``idx`` and the ``count - 1`` next along L, side by side."""
+        i, j, k = idx
+        cR, cT, cL = self.chunks
+        sl = (slice(i * cR, min((i + 1) * cR, self.shape[0])), slice(j * cT, min((j + 1) * cT, self.shape[1])),
+              slice(k * cL, min((k + count) * cL, self.shape[2])))
+        return np.asarray(self.array[sl])
+
 
 class WoodSource:
     """Generated wood of a given thickness along T, unbounded along R and L.
@@ -121,6 +129,18 @@ def load_volume(path: str | Path):
     raise ParameterError(f"`volume` must be .npy, .zarr or a folder of TIFF slices, got {str(path)!r}")
 
 
+def _runs_along_l(keys) -> list[list[tuple]]:
+    """Chunk keys (i, j, k) grouped into runs of consecutive k at the same (i, j)."""
+    runs: list[list[tuple]] = []
+    for key in sorted(keys):
+        last = runs[-1][-1] if runs else None
+        if last is not None and last[:2] == key[:2] and last[2] + 1 == key[2]:
+            runs[-1].append(key)
+        else:
+            runs.append([key])
+    return runs
+
+
 # Buffers of finished caches, reused by the next ChunkCache of this process
 # (a worker traces shard after shard): pages it has written need not be
 # faulted in again.  At most _SPARE_KEPT are kept, the most recent ones.
@@ -143,9 +163,9 @@ class ChunkCache:
         self.outside: set[tuple] = set()
         self.last_use: dict[tuple, int] = {}
         self.tick = 0
-        # One bit per voxel (K.pack_chunk): 1/8 of the chunks' bytes; pages on use.
+        # One bit per voxel (K.pack_chunks): 1/8 of the chunks' bytes; pages on use.
         # Per slot, R index and L segment, the all-wall and all-polymer rows as
-        # bits along T (K.pack_chunk).
+        # bits along T (K.pack_chunks).
         self.bits, self.masks = self._buffers(max(1, int(capacity)))
         self.capacity = self.bits.shape[0]
         self.free = list(range(self.capacity))[::-1]
@@ -225,16 +245,22 @@ class ChunkCache:
             self.bits = np.concatenate([self.bits, np.empty((grow,) + self._bits_shape, np.uint64)])
             self.masks = np.concatenate([self.masks, np.empty((grow,) + self._masks_shape, np.uint64)])
             self.capacity = self.bits.shape[0]
-        chunks = self.source.get_many(inside)
-        for k in inside:
-            s = self.free.pop()
-            chunk = np.asarray(chunks.pop(k))
-            if not K.pack_chunk(chunk, self.bits[s], self.masks[s], self.source.chunks[2]):
-                bad = chunk[(chunk != 0) & (chunk != 1)]
+        if hasattr(self.source, "get_run"):
+            # Runs of chunks along L are read and packed together (whole rows of a volume).
+            runs = _runs_along_l(inside)
+            chunks = None
+        else:
+            runs = [[k] for k in inside]
+            chunks = self.source.get_many(inside)
+        for run in runs:
+            slots = [self.free.pop() for _ in run]
+            voxels = np.asarray(chunks.pop(run[0]) if chunks is not None else self.source.get_run(run[0], len(run)))
+            if not K.pack_chunks(voxels, self.bits, self.masks, slots, self.source.chunks[2]):
+                bad = voxels[(voxels != 0) & (voxels != 1)]
                 got = f"values up to {bad.max()}" if bad.max() > 1 else f"the value {bad.min()}"
                 raise ParameterError(f"`volume` must hold 0 (polymer) and 1 (wall) only, got {got}")
-            self.slots[k] = s
-            self.loads += 1
+            self.slots.update(zip(run, slots))
+            self.loads += len(run)
         self._rebuild()
 
     def voxels(self, lo, shape) -> np.ndarray:
