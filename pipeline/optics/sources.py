@@ -173,6 +173,7 @@ class ChunkCache:
         self._rebuild()
 
     def _buffers(self, capacity):
+        """A finished cache's buffers of this chunk shape with enough slots, or new ones."""
         with _SPARE_LOCK:
             for q, (bits, masks) in enumerate(_SPARE):
                 if bits.shape[1:] == self._bits_shape and bits.shape[0] >= capacity:
