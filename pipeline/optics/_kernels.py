@@ -352,7 +352,8 @@ def window_scratch(radius):
 
 @njit(inline="always", cache=True, nogil=True)
 def _prefetch_window(bits, masks, table, box, cs, shape, start, n):
-    """Start loading the words and row masks of a window that lies in one resident chunk.
+    """Start loading the words and row masks of a window, in the one or two
+    chunks it spans along R and along T (the words of its first L chunk).
 
     The rows of a window are read after its weights are computed; asked for
     here, they arrive meanwhile instead of stalling the row loop.
@@ -363,27 +364,37 @@ def _prefetch_window(bits, masks, table, box, cs, shape, start, n):
     ci = i0 // cs[0]
     cj = j0 // cs[1]
     ck = k0 // cs[2]
-    oi = i0 - ci * cs[0]
-    oj = j0 - cj * cs[1]
-    if oi + n > cs[0] or oj + n > cs[1]:
-        return
-    a = ci - box[0]
-    b = cj - box[1]
-    c = ck - box[2]
-    if a < 0 or b < 0 or c < 0 or a >= table.shape[0] or b >= table.shape[1] or c >= table.shape[2]:
-        return
-    slot = table[a, b, c]
-    if slot < 0:
-        return
+    oi0 = i0 - ci * cs[0]
+    oj0 = j0 - cj * cs[1]
     ok = k0 - ck * cs[2]
     seg = min(max(ok, 0) // MASK_SEG, masks.shape[2] - 1)
-    for q in range(n):
-        prefetch(masks, (slot, oi + q, seg, 0, oj >> 6))
     word = ok >> 6
     step = max(1, 8 // bits.shape[3])  # rows per 64-byte line
+    ta = min(n, cs[1] - oj0)  # rows in the first T chunk; the others in the next
+    tb = n - ta
+    s00 = _slot(table, box, ci, cj, ck)
+    s01 = _slot(table, box, ci, cj + 1, ck) if tb > 0 else -1
+    s10 = -1
+    s11 = -1
+    if oi0 + n > cs[0]:
+        s10 = _slot(table, box, ci + 1, cj, ck)
+        s11 = _slot(table, box, ci + 1, cj + 1, ck) if tb > 0 else -1
     for q in range(n):
-        for r in range(0, n + step - 1, step):
-            prefetch(bits, (slot, oi + q, oj + min(r, n - 1), word))
+        oi = oi0 + q
+        sa = s00
+        sb = s01
+        if oi >= cs[0]:
+            oi -= cs[0]
+            sa = s10
+            sb = s11
+        if sa >= 0:
+            prefetch(masks, (sa, oi, seg, 0, oj0 >> 6))
+            for r in range(0, ta + step - 1, step):
+                prefetch(bits, (sa, oi, oj0 + min(r, ta - 1), word))
+        if sb >= 0:
+            prefetch(masks, (sb, oi, seg, 0, 0))
+            for r in range(0, tb + step - 1, step):
+                prefetch(bits, (sb, oi, min(r, tb - 1), word))
 
 
 @njit(inline="always", cache=True, nogil=True)
