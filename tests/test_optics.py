@@ -161,6 +161,20 @@ def test_a_run_of_row_mask_bits_is_read_across_mask_words_and_segments():
             assert got == want, (g0, g1, o0)
 
 
+def test_a_square_beams_ray_positions_are_hashes_of_seed_and_ray_id():
+    """Ray i's entry point depends on (seed, i) only: a beam of fewer rays is the
+    start of a longer one, and each coordinate is the documented hash."""
+    from pipeline.microstructure import _rng
+    from pipeline.optics.tracer import BEAM_KIND
+
+    long, short = square_beam(300, 40.0, (5.0, -2.0), seed=11), square_beam(17, 40.0, (5.0, -2.0), seed=11)
+    assert np.array_equal(long.origins[:17], short.origins)
+    for i in (0, 16, 299):
+        u = [_rng.uniform(np.uint64(11), BEAM_KIND, i, a, 0) for a in (0, 1)]
+        assert long.origins[i, 0] == 5.0 + (u[0] - 0.5) * 40.0 and long.origins[i, 2] == -2.0 + (u[1] - 0.5) * 40.0
+    assert not np.array_equal(square_beam(17, 40.0, (5.0, -2.0), seed=12).origins, short.origins)
+
+
 def test_a_cache_reuses_the_last_traces_buffers_but_none_of_its_voxels():
     """trace_beam hands its chunk buffers to the next cache of the process (no
     page faults again); what the last trace packed there must not show through."""

@@ -60,6 +60,16 @@ def uniform(seed, kind, a, b, c):
     return float(hash5(seed, kind, a, b, c) >> _S11) * _INV53
 
 
+@njit(cache=True, error_model="numpy")
+def uniform_table(seed, kind, ids, n_b, c):
+    """uniform(seed, kind, id, b, c) for every id of ``ids`` and b < n_b, as an (ids.size, n_b) array."""
+    out = np.empty((ids.size, n_b))
+    for r in range(ids.size):
+        for b in range(n_b):
+            out[r, b] = uniform(seed, kind, ids[r], b, c)
+    return out
+
+
 @njit(inline="always", cache=True, error_model="numpy")
 def normal(seed, kind, a, b, c):
     """N(0, 1) by Box-Muller from two hashed uniforms."""

@@ -106,7 +106,7 @@ def square_beam(n_rays: int, width_vox: float, centre_vox=(0.0, 0.0), *, seed: i
         raise ParameterError(f"`rays` must be >= 1, got {n_rays}")
     ids = np.arange(n_rays, dtype=np.int64)
     s = np.uint64(seed)
-    u = np.array([[_rng.uniform(s, BEAM_KIND, i, a, 0) for a in (0, 1)] for i in ids])
+    u = _rng.uniform_table(s, BEAM_KIND, ids, 2, 0)
     d = np.asarray(direction, dtype=np.float64)
     d = d / np.linalg.norm(d)
     if d[1] <= 0:
