@@ -491,13 +491,7 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
         ch0 = (start[0] + lo[0]) // cs[0]
         ch1 = (start[1] + lo[1]) // cs[1]
         ch2 = (start[2] + lo[2]) // cs[2]
-        ta = ch0 - box[0]
-        tb = ch1 - box[1]
-        tc = ch2 - box[2]
-        if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
-                or tc >= table.shape[2]):
-            return -1.0
-        slot = table[ta, tb, tc]
+        slot = _slot(table, box, ch0, ch1, ch2)
         if slot == -1:
             return -1.0
         slots[0, 0, 0] = slot
@@ -570,11 +564,7 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
             for ua in range(nch0):
                 ta = segs[0, segs[12, ua]]
                 for ub in range(nch1):
-                    tb = segs[2, segs[13, ub]]
-                    if (ta < 0 or tb < 0 or tc < 0 or ta >= table.shape[0] or tb >= table.shape[1]
-                            or tc >= table.shape[2]):
-                        return -1.0
-                    slot = table[ta, tb, tc]
+                    slot = _entry(table, ta, segs[2, segs[13, ub]], tc)
                     if slot == -1:
                         return -1.0
                     slots[sg, ua, ub] = slot
@@ -968,9 +958,12 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
 @njit(inline="always", cache=True, nogil=True)
 def _slot(table, box, c0, c1, c2):
     """Table entry of chunk (c0, c1, c2): a slot, -2 outside a finite volume, -1 not resident."""
-    a = c0 - box[0]
-    b = c1 - box[1]
-    c = c2 - box[2]
+    return _entry(table, c0 - box[0], c1 - box[1], c2 - box[2])
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _entry(table, a, b, c):
+    """table[a, b, c] (indices relative to the table's box), -1 beyond the table."""
     if a < 0 or b < 0 or c < 0 or a >= table.shape[0] or b >= table.shape[1] or c >= table.shape[2]:
         return -1
     return table[a, b, c]
