@@ -15,6 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .._intrinsics import any_inside4
 from . import _rng
 from ._rng import normal, uniform
 
@@ -733,28 +734,34 @@ def _squeeze_and_classify(pT, c, W2, lam, rays, nr):
     return pT, -1
 
 
-@njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def _fibre_phase_at(pR, pT, n_fl, w_fl, n_lo, m_lo, FE):
-    """Phase in the fibre lattice (ellipse lumens), branch-free, given the point's
-    lattice cell (floor(pR/c), floor(pT/c)).
+@njit(cache=True, nogil=True, error_model="numpy")
+def candidate_table(FE, n_lo, m_lo, C4):
+    """The lumen ellipses that can hold a point, per lattice cell (for the fibre phase).
 
-    Lumens of row m = 2j reach |w - m| < 2 nodes, so only rows 2·j0 and
-    2·j0 + 2 (j0 = floor(w/2) = floor(w) >> 1) and, in each, the two centres
-    bracketing u can contain the point.  Closed lumens carry a huge bias in
-    FE[..., 4].
+    A point in lattice cell (n, w) = (floor(R/c), floor(T/c)): lumens of row
+    m = 2j reach |w - m| < 2 nodes, so only rows 2·j0 and 2·j0 + 2
+    (j0 = w >> 1) and, in each, the two centres bracketing n can contain it.
+    C4[n - n_lo, j0 - (m_lo >> 1)] holds those four ellipses' FE rows,
+    fields-major (centre R ×4, centre T ×4, 1/aR² ×4, 1/aT² ×4, bias ×4), for
+    :func:`~pipeline._intrinsics.any_inside4`; a candidate outside FE's window
+    (never met by a point of the slice) gets a closed lumen's bias.
     """
-    j0 = w_fl >> 1
-    qmin = 1e300
-    for dj in range(2):
-        j = j0 + dj
-        mi = np.uint64(2 * j - m_lo)
-        for di in range(2):
-            ii = np.uint64(n_fl - ((n_fl - j) & 1) - n_lo + 2 * di)
-            dR = pR - FE[ii, mi, 0]
-            dT = pT - FE[ii, mi, 1]
-            q = dR * dR * FE[ii, mi, 2] + dT * dT * FE[ii, mi, 3] + FE[ii, mi, 4]
-            qmin = min(qmin, q)
-    return POLYMER if qmin < 1.0 else WALL
+    nn, nm = FE.shape[0], FE.shape[1]
+    jb0 = m_lo >> 1
+    for a in range(C4.shape[0]):
+        n_fl = n_lo + a
+        for b in range(C4.shape[1]):
+            for dj in range(2):
+                j = jb0 + b + dj
+                mi = 2 * j - m_lo
+                for di in range(2):
+                    t = 2 * dj + di
+                    ii = n_fl - ((n_fl - j) & 1) - n_lo + 2 * di
+                    inside = 0 <= ii < nn and 0 <= mi < nm
+                    for f in range(5):
+                        C4[a, b, f, t] = FE[ii, mi, f] if inside else 0.0
+                    if not inside:
+                        C4[a, b, 4, t] = 1e300
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
@@ -804,16 +811,20 @@ def _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt, cand_i, cand_j):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0, gj0, G,
-                 seed, M, n_lo, m_lo, FE, FF, Nt, vessels, VG, VB, VIDX, rays, nr, RC):
+                 seed, M, n_lo, m_lo, FE, FF, Nt, vessels, VG, VB, VIDX, rays, nr, RC, C4, SQ, SR, reuse):
     """Phases of the voxels of one slice bucket.
 
     Per point: a ray band (:func:`ray_cell_phase`), else the vessel cluster
     whose outline may cover the point's lattice cell (:func:`_vessel_phase`),
-    else the fibre lattice (:func:`_fibre_phase_at`, or the polygon cells of
-    :func:`_polygon_phase`).  The helpers are inlined and read per-slice
-    tables, so a point costs no call.  Indices on this path are cast to
-    uint64: Numba wraps negative signed indices around, a test on every
-    access that unsigned ones skip (about a fifth of a birch chunk's time).
+    else the fibre lattice (the four candidate lumens of :func:`candidate_table`
+    in one vector test, or the polygon cells of :func:`_polygon_phase`).  The
+    helpers are inlined and read per-slice tables, so a point costs no call.
+    Indices on this path are cast to uint64: Numba wraps negative signed
+    indices around, a test on every access that unsigned ones skip.
+
+    SQ, SR : per (R, T) column of an unrotated ply, the squeezed T and ray row
+        (-1: none) of :func:`_squeeze_and_classify`; written on every slice, read
+        instead of it when ``reuse`` (this slice's ray table is the last one's).
     """
     c = M[PITCH]
     inv_c = 1.0 / c
@@ -836,7 +847,14 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
             else:
                 pR = P1[i, j, 0]
                 pT = P1[i, j, 1]
-            sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
+            if reuse:
+                sT = SQ[i, j]
+                r = SR[i, j]
+            else:
+                sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
+                if not rotated:
+                    SQ[i, j] = sT
+                    SR[i, j] = r
             if r >= 0:
                 out[i, j, k] = ray_cell_phase(seed, M, pR, sT, np.uint64(r), rays, RC, memo)
                 continue
@@ -853,7 +871,8 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
                 out[i, j, k] = _polygon_phase(pR, sT, pR * inv_c, sT * inv_c, n_lo, m_lo, FE, FF, Nt,
                                               cand_i, cand_j)
             else:
-                out[i, j, k] = _fibre_phase_at(pR, sT, n_fl, w_fl, n_lo, m_lo, FE)
+                cell = (np.uint64(n_fl - n_lo), np.uint64((w_fl >> 1) - (m_lo >> 1)), np.uint64(0), np.uint64(0))
+                out[i, j, k] = POLYMER if any_inside4(C4, cell, pR, sT) else WALL
 
 
 # --------------------------------------------------------------------------
@@ -874,6 +893,7 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
     c = M[PITCH]
     G = c / GRID_PER_PITCH
     rotated = sn != 0.0
+    polygon = M[SHAPE] == 1.0
     q = 0.5 * voxel
     # Ply coordinates of each (R, L) pair, and its slice key.
     Rp = np.empty((nR, nL))
@@ -920,6 +940,12 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
     CV = np.empty((cn_hi - cn + 1, nm, nk, 3))
     CF = np.zeros((cn_hi - cn + 1, nm, nk), np.uint8)
     ENDS_ = np.full((cn_hi - cn + 1, nm, 2), np.nan)
+    # An unrotated ply's slices read the same (R, T) points: one whose ray table
+    # equals the last slice's squeezes and classifies them as it did (SQ, SR).
+    SQ = np.empty((nR if not rotated else 0, nT))
+    SR = np.empty((nR if not rotated else 0, nT), np.int64)
+    last = np.empty((64, 7))
+    n_last = -1
     start = 0
     total = nR * nL
     while start < total:
@@ -950,7 +976,17 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
         nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB, VIDX, rays,
                          stats, CV, CF, cn, ck, ENDS_)
         ray_slice_tables(seed, M, L, rays, nr, RC)
+        reuse = not rotated and nr == n_last
+        for r in range(nr):
+            for f in range(7):
+                reuse = reuse and rays[r, f] == last[r, f]
+                last[r, f] = rays[r, f]
+        n_last = nr
+        C4 = np.empty((nn, ((m_lo + nm - 1) >> 1) - (m_lo >> 1) + 1, 5, 4))
+        if not polygon:
+            candidate_table(FE, n_lo, m_lo, C4)
         _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0,
-                     gj0, G, seed, M, n_lo, m_lo, FE, FF, Nt, vessels[:nv], VG, VB, VIDX, rays, nr, RC)
+                     gj0, G, seed, M, n_lo, m_lo, FE, FF, Nt, vessels[:nv], VG, VB, VIDX, rays, nr, RC,
+                     C4, SQ, SR, reuse)
         stats[ST_VOXELS] += (stop - start) * (j_hi - j_lo)
         start = stop

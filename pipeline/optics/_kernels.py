@@ -15,19 +15,10 @@ import math
 import numpy as np
 from llvmlite import ir
 from numba import njit, types
-from numba.core import cgutils
 from numba.extending import intrinsic
 
+from .._intrinsics import item_pointer, splat
 from ..microstructure._rng import uniform
-
-
-def _item_pointer(context, builder, signature, args):
-    """Codegen: the pointer to arr[index] of an intrinsic whose first arguments are (arr, index)."""
-    aryty = signature.args[0]
-    ary = context.make_array(aryty)(context, builder, args[0])
-    idx = [context.cast(builder, v, t, types.intp)
-           for v, t in zip(cgutils.unpack_tuple(builder, args[1]), signature.args[1])]
-    return cgutils.get_item_pointer(context, builder, aryty, ary, idx, wraparound=False)
 
 
 @intrinsic
@@ -36,7 +27,7 @@ def prefetch(typingctx, arr, index):
     sig = types.void(arr, index)
 
     def codegen(context, builder, signature, args):
-        ptr = _item_pointer(context, builder, signature, args)
+        ptr = item_pointer(context, builder, signature, args)
         i8p = ir.IntType(8).as_pointer()
         i32 = ir.IntType(32)
         fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p],
@@ -159,7 +150,7 @@ def byte_masks64(typingctx, arr, index):
     sig = types.UniTuple(types.uint64, 2)(arr, index)
 
     def codegen(context, builder, signature, args):
-        ptr = _item_pointer(context, builder, signature, args)
+        ptr = item_pointer(context, builder, signature, args)
         vt = ir.VectorType(ir.IntType(8), 64)
         v = builder.load(builder.bitcast(ptr, vt.as_pointer()), align=1)
         i64 = ir.IntType(64)
@@ -178,17 +169,14 @@ def field_flags64(typingctx, arr, index, shift, field):
     sig = types.UniTuple(types.uint64, 2)(arr, index, types.uint64, types.uint64)
 
     def codegen(context, builder, signature, args):
-        ptr = _item_pointer(context, builder, signature, args)
+        ptr = item_pointer(context, builder, signature, args)
         i64 = ir.IntType(64)
         vt = ir.VectorType(i64, 64)
         v = builder.load(builder.bitcast(ptr, vt.as_pointer()), align=8)
 
-        def splat(x):
-            one = builder.insert_element(ir.Constant(vt, ir.Undefined), x, ir.Constant(ir.IntType(32), 0))
-            return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(ir.IntType(32), 64), [0] * 64))
-
-        f = builder.and_(builder.lshr(v, splat(args[2])), splat(args[3]))
-        ones = builder.bitcast(builder.icmp_unsigned("==", f, splat(args[3])), i64)
+        shift, field = splat(builder, vt, args[2]), splat(builder, vt, args[3])
+        f = builder.and_(builder.lshr(v, shift), field)
+        ones = builder.bitcast(builder.icmp_unsigned("==", f, field), i64)
         zero = builder.bitcast(builder.icmp_unsigned("==", f, ir.Constant(vt, None)), i64)
         return context.make_tuple(builder, signature.return_type, [ones, zero])
 

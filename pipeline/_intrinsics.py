@@ -1,0 +1,55 @@
+"""Helpers for Numba intrinsics written in portable LLVM IR (no CPU-specific intrinsics).
+
+The vector types below compile to whatever the CPU offers (SSE, AVX2,
+AVX-512, NEON); the arithmetic in each lane is the scalar expression's, in
+the same order, so results are bit-identical to the scalar code they replace.
+"""
+
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+_I32 = ir.IntType(32)
+
+
+def item_pointer(context, builder, signature, args):
+    """Codegen: the pointer to arr[index] of an intrinsic whose first arguments are (arr, index)."""
+    aryty = signature.args[0]
+    ary = context.make_array(aryty)(context, builder, args[0])
+    idx = [context.cast(builder, v, t, types.intp)
+           for v, t in zip(cgutils.unpack_tuple(builder, args[1]), signature.args[1])]
+    return cgutils.get_item_pointer(context, builder, aryty, ary, idx, wraparound=False)
+
+
+def splat(builder, vt: ir.VectorType, x):
+    """Codegen: the vector of type ``vt`` with ``x`` in every lane."""
+    one = builder.insert_element(ir.Constant(vt, ir.Undefined), x, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(_I32, vt.count), [0] * vt.count))
+
+
+@intrinsic
+def any_inside4(typingctx, arr, index, x, y):
+    """Whether (x, y) lies inside any of four ellipses stored from arr[index] on.
+
+    arr[index] starts 20 contiguous float64, fields-major: the centres' x (4),
+    their y (4), 1/ax² (4), 1/ay² (4) and a bias (4).  An ellipse holds the
+    point when ``dx * dx * (1/ax²) + dy * dy * (1/ay²) + bias < 1`` with
+    dx = x - centre x, dy = y - centre y, evaluated left to right as written:
+    the four in one vector pass, bit for bit the scalar tests.
+    """
+    sig = types.boolean(arr, index, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        vt = ir.VectorType(ir.DoubleType(), 4)
+        base = builder.bitcast(item_pointer(context, builder, signature, args), vt.as_pointer())
+        cx, cy, ax, ay, bias = (builder.load(builder.gep(base, [ir.Constant(_I32, f)]), align=8)
+                                for f in range(5))
+        dx = builder.fsub(splat(builder, vt, args[2]), cx)
+        dy = builder.fsub(splat(builder, vt, args[3]), cy)
+        q = builder.fadd(builder.fadd(builder.fmul(builder.fmul(dx, dx), ax),
+                                      builder.fmul(builder.fmul(dy, dy), ay)), bias)
+        inside = builder.bitcast(builder.fcmp_ordered("<", q, ir.Constant(vt, [1.0] * 4)), ir.IntType(4))
+        return builder.icmp_unsigned("!=", inside, ir.Constant(ir.IntType(4), 0))
+
+    return sig, codegen
