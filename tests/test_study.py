@@ -185,7 +185,7 @@ def test_chunk_files_are_the_zarr_arrays_chunks(tmp_path):
 
     params = build_params("birch")
     store = WoodChunkStore(tmp_path / "w.zarr", params, seed=5, voxel_um=0.5, chunks=(16, 16, 16))
-    assert store._zstd is not None  # the direct path is the one under test
+    assert store._files is not None  # the direct path is the one under test
     mine = store.get((-1, 2, 0))
     array = zarr.open_array(tmp_path / "w.zarr" / "0", mode="r+")
     at = (slice((OFFSET - 1) * 16, OFFSET * 16), slice(32, 48), slice(OFFSET * 16, (OFFSET + 1) * 16))

@@ -14,11 +14,10 @@ On disk the chunks live in one Zarr v3 array (OME-Zarr metadata, like
 generated exist as files, each written atomically (a temporary file renamed
 into place).  Chunks outside the nominal extent are generated but not stored.
 
-Chunk files are read and written directly, with the array's own codecs
-(bytes, then Zstandard) called synchronously: through ``zarr.Array``'s
-asynchronous machinery a 64³ chunk cost 3.3 ms of CPU to write against
-0.2 ms this way, a third of the time it takes to generate it.  Arrays with
-other codecs or key encodings (not made by this class) go through zarr.
+Chunk files are read and written directly (:class:`~pipeline.microstructure.volume.ChunkFiles`):
+through ``zarr.Array``'s asynchronous machinery a 64³ chunk cost 3.3 ms of
+CPU to write against 0.2 ms this way.  Arrays with other codecs or key
+encodings (not made by this class) go through zarr.
 
 In memory, a process-wide LRU keeps recently used chunks, and one lock per
 chunk makes threads of one process wait for a chunk another thread is
@@ -30,19 +29,16 @@ from __future__ import annotations
 import os
 import shutil
 import threading
-import uuid
 from collections import OrderedDict
 from pathlib import Path
 
-import numcodecs
 import numpy as np
 import zarr
-from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
 from ..params import Grid, WoodParams
 from .model import generate_block
-from .volume import ARRAY, AXES, NOT_GENERATED, _ome_attrs, staged_path
+from .volume import ARRAY, AXES, NOT_GENERATED, ChunkFiles, _ome_attrs, staged_path
 
 OFFSET = 160  # chunks held on disk on each side of the origin along R and L
 T_CHUNKS = 256  # chunks held on disk along T (8 mm with 64-voxel chunks of 0.5 µm)
@@ -113,7 +109,7 @@ class WoodChunkStore:
         if not (self.path / ARRAY / "zarr.json").exists():
             self._create()
         self._array = zarr.open_array(self.path / ARRAY, mode="r+")
-        self._zstd = _direct_codec(self._array)
+        self._files = ChunkFiles.of(self._array, self.path / ARRAY)
 
     def _create(self) -> None:
         cR, cT, cL = self.chunks
@@ -148,38 +144,27 @@ class WoodChunkStore:
             return d
         return None
 
-    def _file(self, d) -> Path:
-        return self.path / ARRAY / "c" / str(d[0]) / str(d[1]) / str(d[2])
-
     def stored(self, idx) -> bool:
         """Whether chunk ``idx`` is on disk."""
         d = self._disk_index(idx)
-        return d is not None and self._file(d).exists()
+        if d is None:
+            return False
+        if self._files is None:
+            return self._read(d) is not None
+        return self._files.path(d).exists()
 
     def _read(self, d):
         """Chunk at disk index ``d``, or None when it is not stored."""
-        if self._zstd is None:
+        if self._files is None:
             data = self._array[tuple(slice(i * c, (i + 1) * c) for i, c in zip(d, self.chunks))]
             return None if data.flat[0] == NOT_GENERATED else data
-        try:
-            raw = self._file(d).read_bytes()
-        except FileNotFoundError:
-            return None
-        return np.frombuffer(self._zstd.decode(raw), np.uint8).reshape(self.chunks)
+        return self._files.read(d)
 
     def _write(self, d, data: np.ndarray) -> None:
-        if self._zstd is None:
+        if self._files is None:
             self._array[tuple(slice(i * c, (i + 1) * c) for i, c in zip(d, self.chunks))] = data
             return
-        path = self._file(d)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}")
-        try:
-            tmp.write_bytes(self._zstd.encode(np.ascontiguousarray(data)))
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        self._files.write(d, data)
 
     def get(self, idx) -> np.ndarray:
         """Chunk ``idx`` (R, T, L chunk indices; T >= 0), read-only, shape ``chunks``."""
@@ -235,19 +220,3 @@ class WoodChunkStore:
         data.setflags(write=False)
         _remember(key, data)
         return data
-
-
-def _direct_codec(array: zarr.Array):
-    """The Zstandard codec of ``array`` when its chunks can be read and written as plain files.
-
-    That is: uint8 chunks serialised as raw bytes then Zstandard-compressed,
-    stored one file per chunk under ``c/i/j/k``.  None for anything else.
-    """
-    meta = array.metadata
-    codecs = getattr(meta, "codecs", ())
-    key_encoding = getattr(meta, "chunk_key_encoding", None)
-    if (array.dtype != np.uint8 or len(codecs) != 2 or not isinstance(codecs[0], BytesCodec)
-            or not isinstance(codecs[1], ZstdCodec) or getattr(key_encoding, "name", None) != "default"
-            or getattr(key_encoding, "separator", None) != "/"):
-        return None
-    return numcodecs.Zstd(level=codecs[1].level, checksum=codecs[1].checksum)

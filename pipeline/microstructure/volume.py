@@ -18,8 +18,10 @@ import uuid
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+import numcodecs
 import numpy as np
 import zarr
+from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
 from ..params import Grid, ParameterError, WoodParams, validate
@@ -48,6 +50,63 @@ def _ome_attrs(grid: Grid, name: str) -> dict:
     }
 
 
+class ChunkFiles:
+    """The chunk files of a uint8 Zarr v3 array, read and written directly.
+
+    Applies when the chunks are serialised as raw bytes then Zstandard-
+    compressed, one file per chunk under ``c/i/j/k`` (how this package creates
+    its arrays): :meth:`of` returns None for anything else, to go through
+    zarr.  The codec is called synchronously: through ``zarr.Array``'s
+    asynchronous machinery a 64³ chunk cost 3.3 ms of CPU to write against
+    0.2 ms this way, and a 128³ one about 20 ms.  Files hold the whole chunk
+    shape, the part beyond the array's edge filled (as zarr does).
+    """
+
+    def __init__(self, root: Path, chunks: tuple, codec):
+        self.root = Path(root)
+        self.chunks = tuple(chunks)
+        self.codec = codec
+
+    @classmethod
+    def of(cls, array: zarr.Array, root: Path) -> "ChunkFiles | None":
+        meta = array.metadata
+        codecs = getattr(meta, "codecs", ())
+        key_encoding = getattr(meta, "chunk_key_encoding", None)
+        if (array.dtype != np.uint8 or len(codecs) != 2 or not isinstance(codecs[0], BytesCodec)
+                or not isinstance(codecs[1], ZstdCodec) or getattr(key_encoding, "name", None) != "default"
+                or getattr(key_encoding, "separator", None) != "/"):
+            return None
+        return cls(root, array.chunks, numcodecs.Zstd(level=codecs[1].level, checksum=codecs[1].checksum))
+
+    def path(self, d) -> Path:
+        return self.root / "c" / str(d[0]) / str(d[1]) / str(d[2])
+
+    def read(self, d) -> np.ndarray | None:
+        """Chunk ``d`` (shape ``chunks``), or None when it has no file."""
+        try:
+            raw = self.path(d).read_bytes()
+        except FileNotFoundError:
+            return None
+        return np.frombuffer(self.codec.decode(raw), np.uint8).reshape(self.chunks)
+
+    def write(self, d, data: np.ndarray) -> None:
+        """Store chunk ``d`` atomically (a temporary file renamed into place); ``data`` may
+        be the smaller part of an edge chunk inside the array."""
+        if data.shape != self.chunks:
+            full = np.full(self.chunks, NOT_GENERATED, np.uint8)
+            full[tuple(slice(0, n) for n in data.shape)] = data
+            data = full
+        path = self.path(d)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}")
+        try:
+            tmp.write_bytes(self.codec.encode(np.ascontiguousarray(data)))
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+
 class WoodVolume:
     """A chunked wood volume whose chunks are generated on first access.
 
@@ -61,6 +120,7 @@ class WoodVolume:
         self.grid = grid
         self.seed = int(seed)
         self._array = zarr.open_array(self.path / ARRAY, mode="r+")
+        self._files = ChunkFiles.of(self._array, self.path / ARRAY)
 
     # ------------------------------------------------------------------ create/open
     @classmethod
@@ -158,12 +218,19 @@ class WoodVolume:
 
     def ensure_chunk(self, idx: Sequence[int]) -> np.ndarray:
         """Return chunk ``idx``, generating and storing it if it is not there yet."""
-        sl = self._slices(idx)
-        data = self._array[sl]
-        if data.size and data.flat[0] == NOT_GENERATED:
-            start, shape = self.chunk_region(idx)
-            data = generate_block(self.params, self.grid, start, shape, seed=self.seed)
-            self._array[sl] = data
+        start, shape = self.chunk_region(idx)
+        if self._files is None:
+            sl = self._slices(idx)
+            data = self._array[sl]
+            if data.size and data.flat[0] == NOT_GENERATED:
+                data = generate_block(self.params, self.grid, start, shape, seed=self.seed)
+                self._array[sl] = data
+            return data
+        data = self._files.read(idx)
+        if data is not None:
+            return data[tuple(slice(0, n) for n in shape)]
+        data = generate_block(self.params, self.grid, start, shape, seed=self.seed)
+        self._files.write(idx, data)
         return data
 
     def chunks_of(self, region: tuple[slice, ...]) -> list[tuple[int, int, int]]:
