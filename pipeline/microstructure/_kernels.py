@@ -871,7 +871,8 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
                 out[i, j, k] = _polygon_phase(pR, sT, pR * inv_c, sT * inv_c, n_lo, m_lo, FE, FF, Nt,
                                               cand_i, cand_j)
             else:
-                cell = (np.uint64(n_fl - n_lo), np.uint64((w_fl >> 1) - (m_lo >> 1)), np.uint64(0), np.uint64(0))
+                cell = (np.uint64(n_fl - n_lo), np.uint64((w_fl >> 1) - (m_lo >> 1)),
+                        np.uint64(0), np.uint64(0))
                 out[i, j, k] = POLYMER if any_inside4(C4, cell, pR, sT) else WALL
 
 
