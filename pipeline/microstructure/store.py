@@ -14,10 +14,9 @@ On disk the chunks live in one Zarr v3 array (OME-Zarr metadata, like
 generated exist as files, each written atomically (a temporary file renamed
 into place).  Chunks outside the nominal extent are generated but not stored.
 
-Chunk files are read and written directly (:class:`~pipeline.microstructure.volume.ChunkFiles`):
-through ``zarr.Array``'s asynchronous machinery a 64³ chunk cost 3.3 ms of
-CPU to write against 0.2 ms this way.  Arrays with other codecs or key
-encodings (not made by this class) go through zarr.
+Chunk files are read and written directly, as
+:class:`~pipeline.microstructure.volume.ChunkFiles` explains; arrays with
+other codecs or key encodings (not made by this class) go through zarr.
 
 In memory, a process-wide LRU keeps recently used chunks, and one lock per
 chunk makes threads of one process wait for a chunk another thread is
