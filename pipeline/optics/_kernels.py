@@ -200,13 +200,13 @@ def _pack_rows(voxels, bits, masks, slots, n_l):
         if i < nR:
             for j in range(nT):
                 for q in range(slots.shape[0]):
-                    out = bits[slots[q], i, j]
+                    sq = slots[q]
                     at = q * n_l
                     nL = min(n_l, n_all - at)
                     whole = min(nL // 64, nw)
                     for w in range(whole):
                         word, above = byte_masks64(voxels, (i, j, at + 64 * w))
-                        out[w] = word
+                        bits[sq, i, j, w] = word
                         along_t[q, w, j] = word
                         bad |= above
                     if whole < nw:
@@ -215,7 +215,7 @@ def _pack_rows(voxels, bits, masks, slots, n_l):
                             x = voxels[i, j, at + k]
                             bad |= np.uint64(x > 1)
                             word |= np.uint64(x != 0) << np.uint64(k - 64 * whole)
-                        out[whole] = word
+                        bits[sq, i, j, whole] = word
                         along_t[q, whole, j] = word
         elif i == nR:
             along_t[:] = 0  # the padding planes of partial chunks
