@@ -197,6 +197,51 @@ def test_a_cache_reuses_the_last_traces_buffers_but_none_of_its_voxels():
     assert np.array_equal(again.events, fresh.events)
 
 
+def test_a_process_packs_each_chunk_of_a_wood_once_and_traces_identically_from_the_memo():
+    """A later trace over the same wood (a new source with the same parameters)
+    copies the chunks this process packed before instead of generating them
+    again, with the same rays out; other wood does not match them."""
+    beam = square_beam(40, 30.0, seed=5)
+
+    def run(seed):
+        src = WoodSource(build_params("birch"), thickness_um=40.0, seed=seed, chunks=(32, 32, 32))
+        res = trace_beam(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("fast"))
+        return src, res
+
+    first_src, first = run(3)
+    again_src, again = run(3)
+    other_src, _ = run(4)
+    assert first_src.generated > 0 and first.chunks_loaded == again.chunks_loaded
+    assert again_src.generated == 0
+    assert other_src.generated > 0  # other wood matches none of them
+    assert np.array_equal(again.exit_direction, first.exit_direction)
+    assert np.array_equal(again.events, first.events) and np.array_equal(again.status, first.status)
+
+
+def test_the_packed_memo_keeps_at_most_its_limit_dropping_the_least_recently_used(monkeypatch):
+    from pipeline.optics.sources import PackedMemo
+
+    bits = np.arange(4 * 8, dtype=np.uint64).reshape(4, 8)  # 64 bytes a slot
+    masks = np.zeros((4, 2), np.uint64)  # 16 bytes a slot
+    memo = PackedMemo(limit=3 * 80)
+    for slot in range(3):
+        memo.keep(("w", slot), bits, masks, slot)
+    out_bits, out_masks = np.zeros_like(bits), np.zeros_like(masks)
+    assert memo.fetch(("w", 0), out_bits, out_masks, 2)  # slot 0 is now the most recent
+    assert np.array_equal(out_bits[2], bits[0])
+    memo.keep(("w", 3), bits, masks, 3)
+    assert memo.used == 3 * 80
+    assert not memo.fetch(("w", 1), out_bits, out_masks, 0)  # the least recently used went
+    assert all(memo.fetch(("w", k), out_bits, out_masks, 0) for k in (0, 2, 3))
+    bits[3] = 7  # entries are copies
+    assert memo.fetch(("w", 3), out_bits, out_masks, 1) and out_bits[1, 0] == 24
+    monkeypatch.setenv("TWRAY_PACKED_MEMO_MB", "lots")
+    with pytest.raises(ParameterError, match=r"`TWRAY_PACKED_MEMO_MB` must be an integer >= 0 .*'lots'"):
+        PackedMemo().limit
+    monkeypatch.setenv("TWRAY_PACKED_MEMO_MB", "0")
+    assert PackedMemo().limit == 0
+
+
 def test_bit_packed_chunks_read_back_every_voxel():
     """Chunks are held one bit per voxel in rows along L: rows of 70 voxels take
     two words, last chunks are partly filled, and voxels there read as outside."""
