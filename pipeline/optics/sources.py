@@ -170,9 +170,9 @@ class PackedMemo:
     @property
     def limit(self) -> int:
         """Bytes kept at most: ``limit`` if given, else the environment's
-        ``TWRAY_PACKED_MEMO_MB`` (MiB, default 256; 0 turns the memo off)."""
+        ``TWRAY_PACKED_MEMO_MB`` (MiB, default 1024, 29 000 chunks of 64³; 0 turns the memo off)."""
         if self._limit is None:
-            raw = os.environ.get("TWRAY_PACKED_MEMO_MB", "256")
+            raw = os.environ.get("TWRAY_PACKED_MEMO_MB", "1024")
             try:
                 mb = int(raw)
             except ValueError:
