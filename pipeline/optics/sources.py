@@ -84,7 +84,7 @@ class WoodSource:
         self.shape = (0, nT, 0)  # 0: unbounded
         self.store = store
         self.chunks = tuple(int(c) for c in (store.chunks if store is not None else chunks))
-        self.generated = 0  # chunk requests, including repeats after eviction
+        self.generated = 0  # chunks asked of the store or generator (not those in PackedMemo)
         self.distinct: set[tuple] = set()
         # What its voxels depend on: the chunks of equal tokens are equal (PackedMemo).
         self.token = ("wood", json.dumps(params.to_dict(), sort_keys=True), self.seed, float(voxel_um),
@@ -195,10 +195,10 @@ class PackedMemo:
 
     def keep(self, key, bits, masks, slot) -> None:
         """Remember ``bits[slot]`` and ``masks[slot]`` as entry ``key``."""
-        entry = (bits[slot].copy(), masks[slot].copy())
-        size = entry[0].nbytes + entry[1].nbytes
+        size = bits[slot].nbytes + masks[slot].nbytes
         if size > self.limit:
             return
+        entry = (bits[slot].copy(), masks[slot].copy())
         with self._lock:
             old = self._entries.pop(key, None)
             if old is not None:
