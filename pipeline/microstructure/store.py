@@ -47,31 +47,51 @@ T_CHUNKS = 256  # chunks held on disk along T (8 mm with 64-voxel chunks of 0.5 
 # the three Figure 5 images peaked at 3.4 GB RSS; at 512 MiB 1.4 GB, same time.
 MEMORY_BYTES = 512 << 20
 
-_memory: OrderedDict = OrderedDict()
-_memory_bytes = 0
+class ByteLRU:
+    """A thread-safe mapping that drops its least recently used entries beyond
+    ``limit`` bytes (keeping at least the newest); entries are never replaced."""
+
+    def __init__(self, limit: int | None = None):
+        self._limit = limit
+        self.used = 0
+        self._entries: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+
+    @property
+    def limit(self) -> int:
+        return self._limit
+
+    def get(self, key):
+        """The entry ``key`` (now the most recently used), or None."""
+        with self._lock:
+            entry = self._entries.get(key)
+            if entry is None:
+                return None
+            self._entries.move_to_end(key)
+            return entry[0]
+
+    def put(self, key, value, nbytes: int) -> None:
+        """Add ``value`` of ``nbytes`` as ``key`` unless it is there already."""
+        limit = self.limit
+        with self._lock:
+            if key in self._entries:
+                self._entries.move_to_end(key)
+                return
+            self._entries[key] = (value, nbytes)
+            self.used += nbytes
+            while self.used > limit and len(self._entries) > 1:
+                _, (_, size) = self._entries.popitem(last=False)
+                self.used -= size
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+            self.used = 0
+
+
+_memory = ByteLRU(MEMORY_BYTES)
 _memory_lock = threading.Lock()
 _chunk_locks: dict = {}
-
-
-def _remember(key, data: np.ndarray) -> None:
-    global _memory_bytes
-    with _memory_lock:
-        if key in _memory:
-            _memory.move_to_end(key)
-            return
-        _memory[key] = data
-        _memory_bytes += data.nbytes
-        while _memory_bytes > MEMORY_BYTES and len(_memory) > 1:
-            _, old = _memory.popitem(last=False)
-            _memory_bytes -= old.nbytes
-
-
-def _recall(key):
-    with _memory_lock:
-        data = _memory.get(key)
-        if data is not None:
-            _memory.move_to_end(key)
-        return data
 
 
 def _lock_for(key) -> threading.Lock:
@@ -187,7 +207,7 @@ class WoodChunkStore:
         for idx in indices:
             idx = tuple(int(i) for i in idx)
             key = (str(self.path), idx)
-            data = _recall(key)
+            data = _memory.get(key)
             if data is not None:
                 out[idx] = data
                 continue
@@ -207,7 +227,7 @@ class WoodChunkStore:
 
     def _fetch(self, idx, key) -> np.ndarray:
         """Chunk ``idx`` from memory, disk or the generator; the caller holds its lock."""
-        data = _recall(key)
+        data = _memory.get(key)
         if data is not None:
             return data
         d = self._disk_index(idx)
@@ -221,5 +241,5 @@ class WoodChunkStore:
             if d is not None:
                 self._write(d, data)
         data.setflags(write=False)
-        _remember(key, data)
+        _memory.put(key, data, data.nbytes)
         return data

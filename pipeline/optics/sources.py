@@ -12,12 +12,12 @@ import json
 import math
 import os
 import threading
-from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 
 from ..microstructure.model import generate_block
+from ..microstructure.store import ByteLRU
 from ..params import Grid, ParameterError, WoodParams
 from . import _kernels as K
 
@@ -148,7 +148,7 @@ def _runs_along_l(keys) -> list[list[tuple]]:
     return runs
 
 
-class PackedMemo:
+class PackedMemo(ByteLRU):
     """The bit-packed chunks (bits and row masks) this process made, least recently used
     dropped beyond ``limit`` bytes; keyed by (source token, chunk index).
 
@@ -160,12 +160,6 @@ class PackedMemo:
     64³).  Thread-safe; the entries are copies, so callers may overwrite
     their slots.
     """
-
-    def __init__(self, limit: int | None = None):
-        self._limit = limit
-        self.used = 0
-        self._entries: OrderedDict = OrderedDict()
-        self._lock = threading.Lock()
 
     @property
     def limit(self) -> int:
@@ -184,11 +178,9 @@ class PackedMemo:
 
     def fetch(self, key, bits, masks, slot) -> bool:
         """Copy entry ``key`` into ``bits[slot]`` and ``masks[slot]``; False if absent."""
-        with self._lock:
-            entry = self._entries.get(key)
-            if entry is None:
-                return False
-            self._entries.move_to_end(key)
+        entry = self.get(key)
+        if entry is None:
+            return False
         bits[slot] = entry[0]
         masks[slot] = entry[1]
         return True
@@ -196,23 +188,8 @@ class PackedMemo:
     def keep(self, key, bits, masks, slot) -> None:
         """Remember ``bits[slot]`` and ``masks[slot]`` as entry ``key``."""
         size = bits[slot].nbytes + masks[slot].nbytes
-        if size > self.limit:
-            return
-        entry = (bits[slot].copy(), masks[slot].copy())
-        with self._lock:
-            old = self._entries.pop(key, None)
-            if old is not None:
-                self.used -= old[0].nbytes + old[1].nbytes
-            self._entries[key] = entry
-            self.used += size
-            while self.used > self.limit:
-                _, (b, m) = self._entries.popitem(last=False)
-                self.used -= b.nbytes + m.nbytes
-
-    def clear(self) -> None:
-        with self._lock:
-            self._entries.clear()
-            self.used = 0
+        if size <= self.limit:
+            self.put(key, (bits[slot].copy(), masks[slot].copy()), size)
 
 
 _PACKED = PackedMemo()  # this process's; its limit from TWRAY_PACKED_MEMO_MB
