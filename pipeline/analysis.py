@@ -50,14 +50,26 @@ def fwhm_ci(theta_deg: np.ndarray, *, n_boot: int = 200, seed: int = 0, level: f
 
 
 def haze(directions: np.ndarray, incident=(0.0, 1.0, 0.0)) -> float:
-    """Fraction of directions deviating from ``incident`` by more than 2.5°."""
+    """Fraction of directions deviating from the incident direction by more than 2.5°
+    (ASTM D1003's criterion).
+
+    Parameters
+    ----------
+    directions : ndarray of shape (N, 3)
+        Emergent directions (need not be unit vectors).
+    incident : array-like of shape (3,) or (N, 3)
+        The incident direction, one for all or one per ray (as for an
+        oblique beam refracted by each ray's own entry phase).  Rows of NaN
+        (no undeflected direction to compare with) are left out.
+    """
     d = np.asarray(directions, dtype=np.float64)
+    inc = np.broadcast_to(np.asarray(incident, dtype=np.float64), d.shape)
+    keep = ~np.isnan(inc).any(axis=1)
+    d, inc = d[keep], inc[keep]
     if d.shape[0] == 0:
         return float("nan")
-    inc = np.asarray(incident, dtype=np.float64)
-    inc = inc / np.linalg.norm(inc)
-    cosang = np.clip(d @ inc / np.linalg.norm(d, axis=1), -1.0, 1.0)
-    return float(np.mean(np.degrees(np.arccos(cosang)) > HAZE_ANGLE_DEG))
+    cosang = np.sum(d * inc, axis=1) / (np.linalg.norm(d, axis=1) * np.linalg.norm(inc, axis=1))
+    return float(np.mean(np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))) > HAZE_ANGLE_DEG))
 
 
 def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
@@ -72,7 +84,8 @@ def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
         "fwhm_r_ci_deg": [lo_r, hi_r],
         "fwhm_l_deg": fwhm(tl) if tl.size else float("nan"),
         "fwhm_l_ci_deg": [lo_l, hi_l],
-        "haze": haze(result.exit_direction[t]),
+        "haze": haze(result.exit_direction[t],
+                     (0.0, 1.0, 0.0) if result.incident is None else result.incident[t]),
         "n_rays": int(result.status.size),
         "n_transmitted": counts["transmitted"],
         "n_lost": int(result.status.size - counts["transmitted"]),

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
+import re
 import shutil
 import sys
 import time
@@ -20,6 +22,13 @@ EXIT_USAGE = 2
 
 
 class _Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # Values such as `--delta-ri -1e-3` or `--incidence-deg -10,5` are values,
+        # not options (argparse's own test knows only plain decimals); no option
+        # of twray starts with a digit or a dot.
+        self._negative_number_matcher = re.compile(r"^-[\d.]")
+
     def error(self, message):  # one line, not the usage block
         raise ParameterError(f"{self.prog}: {message}")
 
@@ -137,6 +146,10 @@ def _add_trace(sub):
     p.add_argument("--rays", default="1000")
     p.add_argument("--beam-um", default="150", help="side of the square beam footprint [µm]")
     p.add_argument("--beam-origin-um", default=None, help="beam centre R,L on the entrance face [µm]")
+    p.add_argument("--incidence-deg", default=None,
+                   help="beam direction in air as angles R,L [degree] of its projections on the R-T and "
+                        "L-T planes from +T (default 0,0: perpendicular to the L-R face); the beam "
+                        "refracts into the sample, and haze is measured from this direction")
     p.add_argument("--method", default="accurate", help="paper, fast or accurate")
     p.add_argument("--exit", default="internal", help="angles inside the sample (internal) or in air")
     p.add_argument("--fresnel", action="store_true", help="partial Fresnel reflection")
@@ -199,13 +212,16 @@ def cmd_trace(args) -> int:
     if settings.method == "paper" and wall_um is not None and settings.step_vox * voxel >= wall_um:
         raise ParameterError(f"`step_vox` must be smaller than the wall ({wall_um:g} µm = "
                              f"{wall_um / voxel:g} voxels), got step_vox={settings.step_vox:g}")
-    beam = square_beam(rays, beam_um / voxel, centre, seed=seed)
+    incidence = _incidence(args.incidence_deg)
+    direction = (math.tan(math.radians(incidence[0])), 1.0, math.tan(math.radians(incidence[1])))
+    beam = square_beam(rays, beam_um / voxel, centre, seed=seed, direction=direction)
     t0 = time.perf_counter()
-    result = trace_beam(source, beam, n_wall=n_wall, n_poly=n_poly, settings=settings, seed=seed)
+    result = trace_beam(source, beam, n_wall=n_wall, n_poly=n_poly, settings=settings, seed=seed,
+                        n_outside=1.0 if args.incidence_deg is not None else None)
     elapsed = time.perf_counter() - t0
     summary = summarize(result, seed=seed)
-    summary.update({"delta_ri": dri, "ri_polymer": n_poly, "seconds": elapsed,
-                    "chunks_loaded": result.chunks_loaded})
+    summary.update({"delta_ri": dri, "ri_polymer": n_poly, "incidence_deg": list(incidence),
+                    "seconds": elapsed, "chunks_loaded": result.chunks_loaded})
     if args.out:
         _write_rays(result, summary, voxel, args.out)
     if args.json:
@@ -216,6 +232,19 @@ def cmd_trace(args) -> int:
               f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}°, "
               f"haze {100 * summary['haze']:.1f} %, {elapsed:.1f} s")
     return 0
+
+
+def _incidence(text: str | None) -> tuple[float, float]:
+    """The beam's angles (R, L) in air from --incidence-deg [degree]."""
+    if text is None:
+        return (0.0, 0.0)
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise ParameterError(f"`incidence_deg` must be two angles R,L [degree], got {text!r}")
+    angles = tuple(_float(a, "incidence_deg") for a in parts)
+    if not all(abs(a) < 90.0 for a in angles):
+        raise ParameterError(f"`incidence_deg` angles must lie in (-90, 90) degrees, got {text!r}")
+    return angles
 
 
 def _write_rays(result, summary, voxel, out):
@@ -234,6 +263,9 @@ def _write_rays(result, summary, voxel, out):
             "exit_l": ("ray", result.position[:, 2] * voxel, {"long_name": "exit position L", "units": "um"}),
             "direction": (("ray", "axis"), result.exit_direction, {"long_name": "exit direction (R, T, L)",
                                                                   "units": "1"}),
+            "incident_direction": (("ray", "axis"), result.incident, {
+                "long_name": "direction of the ray had nothing deflected it (haze is measured from it)",
+                "units": "1"}),
             "path_length": ("ray", result.path * voxel, {"long_name": "geometric path length", "units": "um"}),
             "n_interfaces": ("ray", result.events.astype("int32"), {"long_name": "interfaces met"}),
             "status": ("ray", result.status.astype("int32"), {

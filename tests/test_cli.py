@@ -173,12 +173,40 @@ def test_trace_user_volume_npy_index_matched(tmp_path, capsys):
     assert s["interfaces_per_ray"] == 2.0
 
 
+def test_trace_oblique_beam_from_air_with_negative_angles(tmp_path, capsys):
+    """`--incidence-deg -10,5` (negative values read as values, as `--delta-ri -1e-3` is):
+    through an index-matched sample every ray leaves into air at exactly those angles."""
+    import json
+
+    vol = np.zeros((60, 20, 60), np.uint8)
+    vol[:, 5:9, :] = 1
+    np.save(tmp_path / "v.npy", vol)
+    code, stdout, err = run(capsys, "trace", "--volume", str(tmp_path / "v.npy"), "--delta-ri", "-0e-3",
+                            "--incidence-deg", "-10,5", "--exit", "air", "--rays", "40", "--beam-um", "8",
+                            "--json", "--out", str(tmp_path / "r.nc"))
+    assert code == 0, err
+    s = json.loads(stdout)
+    assert s["incidence_deg"] == [-10.0, 5.0] and s["delta_ri"] == 0.0
+    assert s["n_transmitted"] == 40 and s["haze"] == 0.0 and s["fwhm_r_deg"] == 0.0
+    import xarray as xr
+
+    with xr.open_dataset(tmp_path / "r.nc") as ds:
+        assert np.allclose(ds["theta_r"], -10.0, atol=1e-12) and np.allclose(ds["theta_l"], 5.0, atol=1e-12)
+    code, stdout, err = run(capsys, "trace", "--volume", str(tmp_path / "v.npy"), "--delta-ri", "-1e-3",
+                            "--rays", "5", "--beam-um", "8", "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["delta_ri"] == -1e-3
+
+
 @pytest.mark.parametrize("extra, field", [
     (["--method", "magic"], "method"),
     (["--delta-ri", "big"], "delta_ri"),
     (["--rays", "0"], "rays"),
     (["--method", "paper", "--step-vox", "5"], "step_vox"),
     (["--exit", "water"], "exit"),
+    (["--incidence-deg", "95,0"], "incidence_deg"),
+    (["--incidence-deg", "5"], "incidence_deg"),
+    (["--incidence-deg", "-5,x"], "incidence_deg"),
 ])
 def test_trace_bad_input(tmp_path, capsys, extra, field):
     argv = ["trace", "--preset", "birch", "--thickness-mm", "0.05", "--delta-ri", "0.01",

@@ -569,6 +569,35 @@ def test_haze_counts_deviations_beyond_2_5_degrees():
     angles = np.radians([0.0, 1.0, 2.4, 2.6, 10.0])
     dirs = np.column_stack([np.sin(angles), np.cos(angles), np.zeros(5)])
     assert haze(dirs) == pytest.approx(2 / 5)
+    # From a per-ray incident direction (an oblique beam): only the deviation counts;
+    # a row of NaN (no undeflected direction) is left out.
+    inc = np.column_stack([np.sin(angles + 0.1), np.cos(angles + 0.1), np.zeros(5)])
+    assert haze(np.vstack([inc[:4], dirs[4]]), inc) == pytest.approx(1 / 5)
+    assert haze(dirs, np.vstack([dirs[:1] * np.nan, dirs[1:]])) == 0.0
+
+
+@pytest.mark.parametrize("exit", ["internal", "air"])
+def test_an_oblique_beam_measures_haze_from_its_own_direction(exit):
+    """A beam from air at 15° and -6°: through an index-matched sample every ray leaves
+    along the beam's undeflected direction (haze 0, FWHM 0, exactly); through a
+    scattering one the haze is that of the deviations from it, as at normal incidence."""
+    src = WoodSource(build_params("birch"), thickness_um=60.0, seed=2)
+    d_air = unit([math.tan(math.radians(15.0)), 1.0, math.tan(math.radians(-6.0))])
+    beam = square_beam(150, 60.0, seed=4, direction=d_air)
+    settings = settings_for("fast", exit=exit)
+    res = trace_beam(src, beam, n_wall=N_POLY, n_poly=N_POLY, settings=settings, n_outside=1.0)
+    s = summarize(res, n_boot=5)
+    assert s["n_transmitted"] == 150 and s["haze"] == 0.0 and s["fwhm_r_deg"] == 0.0
+    assert np.array_equal(res.exit_direction, res.incident)
+    if exit == "air":
+        assert np.allclose(res.incident, d_air, atol=1e-14)  # Snell in and out of the slab
+    res = trace_beam(src, beam, n_wall=N_POLY + 0.04, n_poly=N_POLY, settings=settings, n_outside=1.0)
+    t = res.transmitted
+    dev = np.degrees(np.arccos(np.clip(np.sum(res.exit_direction[t] * res.incident[t], axis=1), -1, 1)))
+    h = summarize(res, n_boot=5)["haze"]
+    assert h == pytest.approx(np.mean(dev > 2.5)) and 0.05 < h < 0.95
+    # Measured from +T instead, every ray of this beam would count as haze.
+    assert haze(res.exit_direction[t]) == 1.0
 
 
 @pytest.mark.timeout(120)

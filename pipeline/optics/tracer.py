@@ -130,6 +130,11 @@ class RayResult:
     fallbacks: np.ndarray  # (N, 2): degenerate normals, face/direction disagreements
     settings: TraceSettings
     chunks_loaded: int = 0
+    # (N, 3) the direction each ray would leave in, in the convention of
+    # exit_direction, had nothing deflected it (haze is measured from it);
+    # None: every ray came in along +T.  NaN where that undeflected ray could
+    # not leave into air (total reflection at the exit face).
+    incident: np.ndarray | None = None
 
     @property
     def transmitted(self) -> np.ndarray:
@@ -271,8 +276,10 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     K.phases_at(cache.bits, cache.table, cache.box, cs, shape, vox, medium)
     status[medium == K.OUTSIDE] = K.SIDE
     medium[medium == K.OUTSIDE] = 0
+    n_entry = np.where(medium == 1, n_wall, n_poly)
     if n_outside is not None:
-        _enter(dirs, status, np.where(medium == 1, n_wall, n_poly), float(n_outside))
+        _enter(dirs, status, n_entry, float(n_outside))
+    entered = dirs.copy()
     while True:
         K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
                 beam.ray_ids, cache.bits, cache.masks, cache.table, cache.box, cs, shape, method,
@@ -301,16 +308,28 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     loads = cache.loads
     cache.release()  # its buffers serve the next trace of this process
     exit_dirs = dirs.copy()
+    incident = entered
     if settings.exit == "air":
         done = status == K.TRANSMITTED
-        n_exit = np.where(medium == 1, n_wall, n_poly)
-        tang = dirs[:, [0, 2]] * n_exit[:, None]
-        s2 = np.sum(tang**2, axis=1)
-        tir = done & (s2 >= 1.0)
-        status[tir] = TIR_EXIT
-        ok = done & ~tir
-        exit_dirs[ok, 0] = tang[ok, 0]
-        exit_dirs[ok, 2] = tang[ok, 1]
-        exit_dirs[ok, 1] = np.sqrt(1.0 - s2[ok])
+        exit_dirs, tir = _leave_into_air(dirs, np.where(medium == 1, n_wall, n_poly), done)
+        status[done & tir] = TIR_EXIT
+        # Undeflected, a ray keeps the phase and direction it entered with: it
+        # leaves along the beam's own direction in air (Snell both ways).
+        incident, blocked = _leave_into_air(entered, n_entry, np.ones(n, bool))
+        incident[blocked] = np.nan
     return RayResult(pos, dirs, exit_dirs, status.astype(np.int64), events, path, fallbacks,
-                     settings, loads)
+                     settings, loads, incident)
+
+
+def _leave_into_air(dirs: np.ndarray, n_in: np.ndarray, which: np.ndarray):
+    """Directions (a copy) refracted from indices ``n_in`` into air through a T face
+    where ``which``; and where that is total reflection (those rows left as they were)."""
+    out = dirs.copy()
+    tang = dirs[:, [0, 2]] * n_in[:, None]
+    s2 = np.sum(tang**2, axis=1)
+    tir = s2 >= 1.0
+    ok = which & ~tir
+    out[ok, 0] = tang[ok, 0]
+    out[ok, 2] = tang[ok, 1]
+    out[ok, 1] = np.sqrt(1.0 - s2[ok])
+    return out, tir
