@@ -6,6 +6,9 @@ Writes the "trace" section of results/bench.json:
 - birch: rays/s and interfaces/s on a 0.25 mm birch block held in memory, and
   the speed-up per interface of fast/accurate over paper, end to end and
   without the time spent reading and bit-packing the block's chunks;
+- normal_estimators: the normal estimators alone on the same birch interface
+  points (paper's scikit-learn SVM on its 6³ box against fast's and accurate's
+  Gaussian windows with their Newton steps), without traversal or loading;
 - lazy_1_5mm: 1000 rays through 1.5 mm of lazily generated birch: time,
   peak RSS, chunks generated against the chunks of the whole paper sample.
 """
@@ -21,10 +24,13 @@ import numpy as np
 from _bench_json import write_section
 from scipy import stats
 
+from numba import njit
+
 from pipeline.analysis import summarize
+from pipeline.optics import _kernels as K
 from pipeline.microstructure.model import generate_block
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
-from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
+from pipeline.optics.tracer import Beam, settings_for, square_beam, svm_normal, trace_beam
 from pipeline.optics.validation import rod_deflection_deg, voxelised_rod
 from pipeline.params import build_params, make_grid
 
@@ -120,6 +126,64 @@ def birch_speed(block, rays: dict, repeats: int = 5) -> dict:
     return out
 
 
+@njit(nogil=True)
+def _window_normals(bits, masks, table, box, cs, shape, X, D, s, out, wts, segs, slots):
+    """surface_normal of settings ``s`` = (sigma, radius, newton, refit) at each point X[r]."""
+    nrm = np.empty(3)
+    for r in range(X.shape[0]):
+        K.surface_normal(bits, masks, table, box, cs, shape, X[r], D[r], s[0], s[1], np.int64(s[2]),
+                         np.int64(s[3]), nrm, wts, segs, slots)
+        out[r] = nrm
+
+
+def normal_estimators(block, n_svm: int = 300, n_window: int = 100_000, seed: int = 0) -> dict:
+    """Each estimator's cost per normal on the same birch interface points: voxel faces
+    between the two phases, mostly T faces crossed by rays near +T, as in the beam."""
+    rng = np.random.default_rng(seed)
+    X, D = [], []
+    while len(X) < n_window:
+        i, j, k = rng.integers(16, np.asarray(block.shape) - 17)
+        ax = 1 if rng.random() < 0.7 else int(rng.integers(0, 3))
+        e = np.eye(3, dtype=np.int64)[ax]
+        if block[i, j, k] != block[i + e[0], j + e[1], k + e[2]]:
+            x = np.array([i, j, k]) + rng.random(3)
+            x[ax] = (i, j, k)[ax] + 1.0
+            d = rng.normal(0.0, 0.2, 3)
+            d[ax] = 1.0
+            X.append(x)
+            D.append(d / np.linalg.norm(d))
+    X, D = np.array(X), np.array(D)
+    src = ArraySource(block, chunks=(128, 128, 128))
+    cache = ChunkCache(src, capacity=64)
+    cache.require(np.ndindex(*(-(-n // c) for n, c in zip(block.shape, src.chunks))))
+    view = (cache.bits, cache.masks, cache.table, cache.box, cache.chunk_shape,
+            np.asarray(block.shape, np.int64))
+    out = {"points": n_window, "svm_points": n_svm}
+    half = settings_for("paper").svm_box // 2
+    svm_normal(cache.voxels(np.floor(X[0]).astype(np.int64) - (half - 1), (2 * half,) * 3), X[0],
+               np.floor(X[0]).astype(np.int64) - (half - 1))  # import scikit-learn
+    t0 = time.perf_counter()
+    for x in X[:n_svm]:
+        lo = np.floor(x).astype(np.int64) - (half - 1)
+        svm_normal(cache.voxels(lo, (2 * half,) * 3), x, lo)
+    out["paper_us"] = 1e6 * (time.perf_counter() - t0) / n_svm
+    for m in ("fast", "accurate"):
+        st = settings_for(m)
+        s = np.array([st.sigma_vox, st.radius_vox, st.newton, st.refit], np.float64)
+        scratch = K.window_scratch(st.radius_vox)
+        normals = np.empty_like(X)
+        _window_normals(*view, X[:10], D[:10], s, normals[:10], *scratch)  # compile
+        best = math.inf
+        for _ in range(3):
+            t0 = time.perf_counter()
+            _window_normals(*view, X, D, s, normals, *scratch)
+            best = min(best, time.perf_counter() - t0)
+        out[f"{m}_us"] = 1e6 * best / n_window
+        out[f"speedup_{m}"] = out["paper_us"] / out[f"{m}_us"]
+    cache.release()
+    return out
+
+
 def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(64, 64, 64)) -> dict:
     p = build_params("birch")
     src = WoodSource(p, thickness_um=thickness_mm * 1000, seed=1, chunks=chunks)
@@ -159,6 +223,7 @@ def main() -> None:
     res["speedup_per_interface_over_paper_chunks_resident"] = {
         m: b["paper"]["us_per_interface_chunks_resident"] / b[m]["us_per_interface_chunks_resident"]
         for m in ("fast", "accurate")}
+    res["normal_estimators"] = normal_estimators(block)
     res["lazy_1_5mm"] = lazy_trace()
     write_section(args.out, "trace", res)
 

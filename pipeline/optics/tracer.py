@@ -154,8 +154,26 @@ class RayResult:
         return {name: int(np.sum(self.status == code)) for code, name in STATUS_NAMES.items()}
 
 
-def _svm_normal(box: np.ndarray, centre: np.ndarray, lo: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Normal of the plane a linear SVM fits between wall and polymer voxels (the paper's)."""
+def svm_normal(box: np.ndarray, centre: np.ndarray, lo: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The paper's interface normal: that of the plane a linear SVM fits between the
+    wall and polymer voxels of a small box.
+
+    Parameters
+    ----------
+    box : ndarray of shape (n, n, n), uint8
+        The voxels around the crossing (1 = wall), the paper's 6 × 6 × 6.
+    centre : ndarray of shape (3,)
+        The crossing point [voxels].
+    lo : ndarray of shape (3,), int
+        The index of ``box[0, 0, 0]`` in the volume.
+
+    Returns
+    -------
+    normal : ndarray of shape (3,)
+        Unit normal pointing into the wall, or zeros for a one-phase box.
+    ok : bool
+        False for a one-phase box (no plane to fit).
+    """
     from sklearn.svm import SVC
 
     labels = box.reshape(-1)
@@ -302,7 +320,7 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
             centre = pos[r]
             lo = np.floor(centre).astype(np.int64) - (half - 1)
             box = cache.voxels(lo, (settings.svm_box,) * 3)
-            w, ok = _svm_normal(box, centre, lo)
+            w, ok = svm_normal(box, centre, lo)
             normals[r, :3] = w
             normals[r, 3] = 1.0 if ok else 0.0
     loads = cache.loads
