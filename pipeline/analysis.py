@@ -93,6 +93,8 @@ def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
         "interfaces_per_ray": float(np.mean(result.events)),
         "degenerate_normals": int(result.fallbacks[:, 0].sum()),
         "face_disagreements": int(result.fallbacks[:, 1].sum()),
+        # Normals taken at the face point: walls thinner than the smoothing.
+        "thin_wall_normals": int(result.fallbacks[:, 2].sum()),
         "method": result.settings.method,
         "exit": result.settings.exit,
     }

@@ -72,6 +72,7 @@ EXACT = 1  # voxel traversal, crossing on the voxel face, Gaussian-gradient norm
 
 FRESNEL_KIND = 40  # random-stream kind for partial reflection
 NEWTON_REACH = 3.0  # the crossing point moves at most this far along the ray [voxels]
+NO_SURFACE = 3  # surface_normal: no 1/2-level surface along the ray, the face point's gradient taken
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -780,7 +781,10 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
     The first ``refit`` steps evaluate the window again at the new point; the
     others step on the second-order model around the last evaluation
     (S + s ∇S·d + s² dᵀHd / 2), whose gradient ∇S + s H d is the normal.
-    Returns 1 on success, 0 for a one-phase neighbourhood, -1 for a missing chunk.
+    Where that model has no root (a wall thinner than the smoothing) the
+    normal is the gradient at xf itself.
+    Returns 1 on success, NO_SURFACE for that fallback, 0 for a one-phase
+    neighbourhood, -1 for a missing chunk.
     """
     x = wts[12]
     hess = wts[13]
@@ -790,12 +794,15 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
     te = 0.0  # where the window was last evaluated
     it = 0
     evaluate = True
+    g0 = (0.0, 0.0, 0.0)
     while True:
         if evaluate:  # one call site: smoothed_wall is inlined once
             S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, segs,
                               slots)
             if S < 0.0:
                 return -1
+            if it == 0:
+                g0 = (out[0], out[1], out[2])
             te = t
             gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
             hd0 = hess[0] * d[0] + hess[3] * d[1] + hess[4] * d[2]
@@ -819,6 +826,15 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
                 x[q] = xf[q] + t * d[q]
             evaluate = True
         it += 1
+    if gd * gd - 2.0 * dhd * (S - 0.5) < 0.0:
+        # The model never reaches 1/2 along the ray: a wall thinner than the
+        # smoothing (its S peaks below 1/2), where the steps above wander to
+        # their reach and the model's gradient there is an extrapolation.  The
+        # gradient at the face point still points across the wall, alike on
+        # its two sides (a thin tube's deflection: SPEC.md §8).
+        for q in range(3):
+            out[q] = g0[q]
+        return 0 if _normalise(out) < 1e-12 else NO_SURFACE
     u = t - te
     out[0] += u * hd0
     out[1] += u * hd1
@@ -861,8 +877,9 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
 
     Per ray: pos (3) float64, dirs (3) unit float64, medium 0/1, vox (3) int64
     current voxel (EXACT mode), status, events (interfaces met), path length
-    [voxels], fallbacks (2): degenerate normals, and (EXACT) events whose new
-    direction disagreed with the crossed voxel face.  ``request`` receives the chunk a
+    [voxels], fallbacks (3): degenerate normals, (EXACT) events whose new
+    direction disagreed with the crossed voxel face, and (EXACT) normals taken
+    at the face point for want of a 1/2-level surface (thin walls).  ``request`` receives the chunk a
     NEEDS_CHUNK ray waits for, or (paper mode) the crossing point of a
     NEEDS_NORMAL ray, whose normal arrives in ``normals``.
     bits, masks, table, box : the resident chunks, bit-packed (pack_chunks), their
@@ -1089,6 +1106,8 @@ def _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, 
                 for q in range(3):
                     nrm[q] = 0.0
                 nrm[axis] = -sgn
+            elif ok == NO_SURFACE:
+                fallbacks[r, 2] += 1
             if ok == 2:
                 new_medium = 1 - medium[r]
                 for q in range(3):

@@ -64,7 +64,7 @@ class TraceSettings:
 
 # Bump when the kernels' numbers change for the same inputs (part of the
 # study and camera cache keys, so cached rays and images are traced again).
-TRACER_VERSION = "3"
+TRACER_VERSION = "4"
 
 PRESETS = {
     "paper": TraceSettings(method="paper"),
@@ -127,7 +127,7 @@ class RayResult:
     status: np.ndarray  # (N,)
     events: np.ndarray
     path: np.ndarray
-    fallbacks: np.ndarray  # (N, 2): degenerate normals, face/direction disagreements
+    fallbacks: np.ndarray  # (N, 3): degenerate normals, face/direction disagreements, thin-wall normals
     settings: TraceSettings
     chunks_loaded: int = 0
     # (N, 3) the direction each ray would leave in, in the convention of
@@ -279,7 +279,7 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     status = np.full(n, K.NEEDS_CHUNK, np.int8)
     events = np.zeros(n, np.int64)
     path = np.zeros(n)
-    fallbacks = np.zeros((n, 2), np.int64)
+    fallbacks = np.zeros((n, 3), np.int64)
     request = vox // np.asarray(source.chunks)
     normals = np.zeros((n, 4))
     shape = np.asarray(source.shape, np.int64)
