@@ -24,13 +24,12 @@ import time
 
 import numpy as np
 from _bench_json import write_section
+from numba import njit
 from scipy import stats
 
-from numba import njit
-
 from pipeline.analysis import summarize
-from pipeline.optics import _kernels as K
 from pipeline.microstructure.model import generate_block
+from pipeline.optics import _kernels as K
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, svm_normal, trace_beam
 from pipeline.optics.validation import rod_deflection_deg, tube_deflection_deg, voxelised_rod, voxelised_tube
@@ -39,19 +38,24 @@ from pipeline.params import build_params, make_grid
 M_REL = 1.50 / 1.49
 
 
+def _across(vol, c0: float, b: np.ndarray, method: str):
+    """Rays along +T at impact parameters ``b`` from R = c0 through a cylinder volume (axis along L)."""
+    nn = vol.shape[0]
+    origins = np.column_stack([c0 + b, np.zeros_like(b), np.full_like(b, 16.0)])
+    return trace_beam(ArraySource(vol, chunks=(nn, nn, 32)),
+                      Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(b.size)),
+                      n_wall=1.50, n_poly=1.49, settings=settings_for(method))
+
+
 def rod_errors(method: str, rays_per_rod: int, n_rods: int = 4, R: float = 30.0, seed: int = 0):
     rng = np.random.default_rng(seed)
     got, exact, events, seconds = [], [], 0, 0.0
     for off in rng.uniform(0, 1, size=(n_rods, 2)):
         c0, c1 = R + 20 + off[0], R + 20 + off[1]
-        nn = int(2 * R + 42)
-        vol = voxelised_rod(R, (c0, c1), nn)
+        vol = voxelised_rod(R, (c0, c1), int(2 * R + 42))
         b = rng.uniform(-R, R, rays_per_rod)
-        origins = np.column_stack([c0 + b, np.zeros_like(b), np.full_like(b, 16.0)])
         t0 = time.perf_counter()
-        res = trace_beam(ArraySource(vol, chunks=(nn, nn, 32)),
-                         Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(b.size)),
-                         n_wall=1.50, n_poly=1.49, settings=settings_for(method))
+        res = _across(vol, c0, b, method)
         seconds += time.perf_counter() - t0
         events += int(res.events.sum())
         got.append(res.theta_r)
@@ -76,15 +80,11 @@ def tube_errors(method: str, wall: float, rays_per_tube: int = 600, n_tubes: int
     err, thin, events = [], 0, 0
     for off in rng.uniform(0, 1, size=(n_tubes, 2)):
         c0, c1 = R + 20 + off[0], R + 20 + off[1]
-        nn = int(2 * R + 42)
-        vol = voxelised_tube(R, wall, (c0, c1), nn)
+        vol = voxelised_tube(R, wall, (c0, c1), int(2 * R + 42))
         b = rng.uniform(-R, R, rays_per_tube)
         exact = tube_deflection_deg(b, R, wall, M_REL)
         b, exact = b[~np.isnan(exact)], exact[~np.isnan(exact)]
-        origins = np.column_stack([c0 + b, np.zeros_like(b), np.full_like(b, 16.0)])
-        res = trace_beam(ArraySource(vol, chunks=(nn, nn, 32)),
-                         Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(b.size)),
-                         n_wall=1.50, n_poly=1.49, settings=settings_for(method))
+        res = _across(vol, c0, b, method)
         t = res.transmitted
         err.append(np.abs(res.theta_r[t] - exact[t]))
         thin += int(res.fallbacks[:, 2].sum())
@@ -187,13 +187,16 @@ def normal_estimators(block, n_svm: int = 300, n_window: int = 100_000, seed: in
     view = (cache.bits, cache.masks, cache.table, cache.box, cache.chunk_shape,
             np.asarray(block.shape, np.int64))
     out = {"points": n_window, "svm_points": n_svm}
-    half = settings_for("paper").svm_box // 2
-    svm_normal(cache.voxels(np.floor(X[0]).astype(np.int64) - (half - 1), (2 * half,) * 3), X[0],
-               np.floor(X[0]).astype(np.int64) - (half - 1))  # import scikit-learn
+    box = settings_for("paper").svm_box
+
+    def paper_normal(x):  # the box around x as the tracer reads it
+        lo = np.floor(x).astype(np.int64) - (box // 2 - 1)
+        return svm_normal(cache.voxels(lo, (box,) * 3), x, lo)
+
+    paper_normal(X[0])  # imports scikit-learn
     t0 = time.perf_counter()
     for x in X[:n_svm]:
-        lo = np.floor(x).astype(np.int64) - (half - 1)
-        svm_normal(cache.voxels(lo, (2 * half,) * 3), x, lo)
+        paper_normal(x)
     out["paper_us"] = 1e6 * (time.perf_counter() - t0) / n_svm
     for m in ("fast", "accurate"):
         st = settings_for(m)

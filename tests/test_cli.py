@@ -178,6 +178,8 @@ def test_trace_oblique_beam_from_air_with_negative_angles(tmp_path, capsys):
     through an index-matched sample every ray leaves into air at exactly those angles."""
     import json
 
+    import xarray as xr
+
     vol = np.zeros((60, 20, 60), np.uint8)
     vol[:, 5:9, :] = 1
     np.save(tmp_path / "v.npy", vol)
@@ -188,8 +190,6 @@ def test_trace_oblique_beam_from_air_with_negative_angles(tmp_path, capsys):
     s = json.loads(stdout)
     assert s["incidence_deg"] == [-10.0, 5.0] and s["delta_ri"] == 0.0
     assert s["n_transmitted"] == 40 and s["haze"] == 0.0 and s["fwhm_r_deg"] == 0.0
-    import xarray as xr
-
     with xr.open_dataset(tmp_path / "r.nc") as ds:
         assert np.allclose(ds["theta_r"], -10.0, atol=1e-12) and np.allclose(ds["theta_l"], 5.0, atol=1e-12)
     code, stdout, err = run(capsys, "trace", "--volume", str(tmp_path / "v.npy"), "--delta-ri", "-1e-3",
