@@ -72,7 +72,7 @@ EXACT = 1  # voxel traversal, crossing on the voxel face, Gaussian-gradient norm
 
 FRESNEL_KIND = 40  # random-stream kind for partial reflection
 NEWTON_REACH = 3.0  # the crossing point moves at most this far along the ray [voxels]
-NO_SURFACE = 3  # surface_normal: no 1/2-level surface along the ray, the face point's gradient taken
+NO_SURFACE = 3  # surface_normal: no 1/2-level surface to meet (a thin sheet), the axis across it taken
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -771,6 +771,52 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
 
 
 @njit(inline="always", cache=True, nogil=True)
+def _sheet_normal(h, out, valley):
+    """Replace the unit vector ``out`` by the axis across a thin sheet, where the
+    Hessian h (RR, TT, LL, RT, RL, TL) curves down most, signed like ``out``;
+    ``out`` is kept where h has no such single axis."""
+    a00, a11, a22, a01, a02, a12 = h
+    if valley:  # a sheet of polymer: S curves up most across it
+        a00, a11, a22, a01, a02, a12 = -a00, -a11, -a22, -a01, -a02, -a12
+    q = (a00 + a11 + a22) / 3.0
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    if not p2 > 0.0:
+        return
+    p = math.sqrt(p2 / 6.0)
+    b00 = (a00 - q) / p
+    b11 = (a11 - q) / p
+    b22 = (a22 - q) / p
+    b01 = a01 / p
+    b02 = a02 / p
+    b12 = a12 / p
+    r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02))
+    phi = math.acos(min(max(r, -1.0), 1.0)) / 3.0
+    lo = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)  # the lowest eigenvalue
+    mid = 3.0 * q - lo - (q + 2.0 * p * math.cos(phi))
+    if not (lo < 0.0 and mid - lo > 0.5 * abs(lo)):
+        return  # no ridge, or no single axis across it (a thin rod, say)
+    # Its eigenvector: the longest cross product of two rows of h - lo·I.
+    r0 = (a00 - lo, a01, a02)
+    r1 = (a01, a11 - lo, a12)
+    r2 = (a02, a12, a22 - lo)
+    best = 0.0
+    e = (0.0, 0.0, 0.0)
+    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        c = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+        m = c[0] * c[0] + c[1] * c[1] + c[2] * c[2]
+        if m > best:
+            best = m
+            e = c
+    if not best > 0.0:
+        return
+    sgn = 1.0 if e[0] * out[0] + e[1] * out[1] + e[2] * out[2] >= 0.0 else -1.0
+    inv = sgn / math.sqrt(best)
+    for k in range(3):
+        out[k] = e[k] * inv
+
+
+@njit(inline="always", cache=True, nogil=True)
 def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, newton, refit, out, wts, segs,
                    slots):
     """Normal where the ray meets the smoothed wall surface S = 1/2 near face point xf.
@@ -781,8 +827,10 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
     The first ``refit`` steps evaluate the window again at the new point; the
     others step on the second-order model around the last evaluation
     (S + s ∇S·d + s² dᵀHd / 2), whose gradient ∇S + s H d is the normal.
-    Where that model has no root (a wall thinner than the smoothing) the
-    normal is the gradient at xf itself.
+    Where there is no such surface (a sheet thinner than the smoothing, found
+    by the model along the gradient at xf, or a model along the ray without
+    a root) the normal is the axis across the sheet from the Hessian at xf
+    (_sheet_normal).
     Returns 1 on success, NO_SURFACE for that fallback, 0 for a one-phase
     neighbourhood, -1 for a missing chunk.
     """
@@ -795,6 +843,9 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
     it = 0
     evaluate = True
     g0 = (0.0, 0.0, 0.0)
+    h0 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    thin0 = False
+    s0 = 0.0
     while True:
         if evaluate:  # one call site: smoothed_wall is inlined once
             S = smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, out, hess, wts, segs,
@@ -802,13 +853,24 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
             if S < 0.0:
                 return -1
             if it == 0:
+                s0 = S
                 g0 = (out[0], out[1], out[2])
+                h0 = (hess[0], hess[1], hess[2], hess[3], hess[4], hess[5])
             te = t
             gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
             hd0 = hess[0] * d[0] + hess[3] * d[1] + hess[4] * d[2]
             hd1 = hess[3] * d[0] + hess[1] * d[1] + hess[5] * d[2]
             hd2 = hess[4] * d[0] + hess[5] * d[1] + hess[2] * d[2]
             dhd = d[0] * hd0 + d[1] * hd1 + d[2] * hd2
+            if it == 0:
+                # Along the gradient the model S + s|g| + s²ĝᵀHĝ/2 never reaches
+                # 1/2 (whatever the ray's direction): a sheet of either phase
+                # thinner than the smoothing.
+                gg = out[0] * out[0] + out[1] * out[1] + out[2] * out[2]
+                ghg = (out[0] * (hess[0] * out[0] + hess[3] * out[1] + hess[4] * out[2])
+                       + out[1] * (hess[3] * out[0] + hess[1] * out[1] + hess[5] * out[2])
+                       + out[2] * (hess[4] * out[0] + hess[5] * out[1] + hess[2] * out[2]))
+                thin0 = gg * gg - 2.0 * ghg * (S - 0.5) < 0.0
             evaluate = False
         if it >= newton:
             break
@@ -826,15 +888,22 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
                 x[q] = xf[q] + t * d[q]
             evaluate = True
         it += 1
-    if gd * gd - 2.0 * dhd * (S - 0.5) < 0.0:
-        # The model never reaches 1/2 along the ray: a wall thinner than the
-        # smoothing (its S peaks below 1/2), where the steps above wander to
-        # their reach and the model's gradient there is an extrapolation.  The
-        # gradient at the face point still points across the wall, alike on
-        # its two sides (a thin tube's deflection: SPEC.md §8).
+    if thin0 or gd * gd - 2.0 * dhd * (S - 0.5) < 0.0:
+        # No surface S = 1/2 to meet: across a sheet of either phase thinner
+        # than the smoothing S peaks (dips) short of 1/2, and the model along
+        # the ray misses 1/2 there; the steps above then wander to their reach,
+        # where the model's gradient is an extrapolation.  The normal is the
+        # axis across the sheet, along which S's Hessian at xf curves most:
+        # the same on both faces of a flat sheet, wherever the ray crosses
+        # them (so a thin flat wall leaves a ray parallel to itself), and
+        # radial in a thin tube (its deflection: SPEC.md §8).  Without such an
+        # axis, the gradient at xf.
         for q in range(3):
             out[q] = g0[q]
-        return 0 if _normalise(out) < 1e-12 else NO_SURFACE
+        if _normalise(out) < 1e-12:
+            return 0
+        _sheet_normal(h0, out, s0 > 0.5)
+        return NO_SURFACE
     u = t - te
     out[0] += u * hd0
     out[1] += u * hd1
