@@ -72,7 +72,7 @@ EXACT = 1  # voxel traversal, crossing on the voxel face, Gaussian-gradient norm
 
 FRESNEL_KIND = 40  # random-stream kind for partial reflection
 NEWTON_REACH = 3.0  # the crossing point moves at most this far along the ray [voxels]
-NO_SURFACE = 3  # surface_normal: no 1/2-level surface to meet (a thin sheet), the axis across it taken
+NO_SURFACE = 3  # surface_normal: no 1/2-level surface along the ray (a thin sheet, a grazing ray)
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -827,10 +827,10 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
     The first ``refit`` steps evaluate the window again at the new point; the
     others step on the second-order model around the last evaluation
     (S + s ∇S·d + s² dᵀHd / 2), whose gradient ∇S + s H d is the normal.
-    Where there is no such surface (a sheet thinner than the smoothing, found
-    by the model along the gradient at xf, or a model along the ray without
-    a root) the normal is the axis across the sheet from the Hessian at xf
-    (_sheet_normal).
+    Where the model along the ray has no root the normal is the gradient at
+    xf, or, across a sheet thinner than the smoothing (the model along that
+    gradient never reaches 1/2), the axis across the sheet from the Hessian
+    at xf (_sheet_normal).
     Returns 1 on success, NO_SURFACE for that fallback, 0 for a one-phase
     neighbourhood, -1 for a missing chunk.
     """
@@ -889,20 +889,23 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
             evaluate = True
         it += 1
     if thin0 or gd * gd - 2.0 * dhd * (S - 0.5) < 0.0:
-        # No surface S = 1/2 to meet: across a sheet of either phase thinner
-        # than the smoothing S peaks (dips) short of 1/2, and the model along
-        # the ray misses 1/2 there; the steps above then wander to their reach,
-        # where the model's gradient is an extrapolation.  The normal is the
+        # No surface S = 1/2 to meet along the ray: the steps above wander to
+        # their reach, where the model's gradient is an extrapolation.  Then
+        # the normal is the gradient at xf; and across a sheet of either phase
+        # thinner than the smoothing (thin0: S peaks or dips short of 1/2) the
         # axis across the sheet, along which S's Hessian at xf curves most:
         # the same on both faces of a flat sheet, wherever the ray crosses
         # them (so a thin flat wall leaves a ray parallel to itself), and
-        # radial in a thin tube (its deflection: SPEC.md §8).  Without such an
-        # axis, the gradient at xf.
+        # radial in a thin tube (its deflection: SPEC.md §8).  Taking that
+        # axis also where only the model along the ray misses 1/2 (grazing
+        # rays) moved birch's FWHM_R at ΔRI < 0 away from its value at half
+        # the voxel size (by 10-16 %), so it is not.
         for q in range(3):
             out[q] = g0[q]
         if _normalise(out) < 1e-12:
             return 0
-        _sheet_normal(h0, out, s0 > 0.5)
+        if thin0:
+            _sheet_normal(h0, out, s0 > 0.5)
         return NO_SURFACE
     u = t - te
     out[0] += u * hd0
