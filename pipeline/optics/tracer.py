@@ -64,7 +64,7 @@ class TraceSettings:
 
 # Bump when the kernels' numbers change for the same inputs (part of the
 # study and camera cache keys, so cached rays and images are traced again).
-TRACER_VERSION = "5"
+TRACER_VERSION = "6"
 
 PRESETS = {
     "paper": TraceSettings(method="paper"),
