@@ -3,8 +3,10 @@
 Writes the "trace" section of results/bench.json:
 - rods: error of each preset against the exact deflection law of a
   voxelised rod (R = 30 voxels, 1.50 in 1.49, random sub-voxel centres);
-- tubes: the same for tubes (outer R = 30 voxels) with walls of 1.5 to 6
+- tubes: the same for tubes (outer R = 30 voxels) with walls of 1 to 6
   voxels, thin walls being where voxel normals are hardest;
+- sheets: rays through flat sheets of wall (or polymer) 1-2 voxels thick,
+  tilted 20-70° from the beam, which leave exactly undeflected;
 - birch: rays/s and interfaces/s on a 0.25 mm birch block held in memory, and
   the speed-up per interface of fast/accurate over paper, end to end and
   without the time spent reading and bit-packing the block's chunks; and the
@@ -34,7 +36,8 @@ from pipeline.microstructure.model import generate_block
 from pipeline.optics import _kernels as K
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, svm_normal, trace_beam
-from pipeline.optics.validation import rod_deflection_deg, tube_deflection_deg, voxelised_rod, voxelised_tube
+from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod, voxelised_sheet,
+                                       voxelised_tube)
 from pipeline.params import build_params, make_grid
 
 M_REL = 1.50 / 1.49
@@ -94,6 +97,28 @@ def tube_errors(method: str, wall: float, rays_per_tube: int = 600, n_tubes: int
     e = np.concatenate(err)
     return {"wall_vox": wall, "rays": int(e.size), "median_abs_error_deg": float(np.median(e)),
             "share_above_2_deg": float(np.mean(e > 2.0)), "thin_wall_normals_share": thin / max(events, 1)}
+
+
+def sheet_errors(method: str, thickness: float, phase: int = 1, tilts=(20.0, 45.0, 60.0, 70.0),
+                 rays_per_tilt: int = 400, seed: int = 0):
+    """Deflection through flat sheets, exactly 0 (parallel faces), at tilts of their normal from +T."""
+    rng = np.random.default_rng(seed)
+    out = []
+    n = rays_per_tilt // 4
+    for tilt in tilts:
+        dev = []
+        for off in rng.uniform(0, 1, 4):
+            vol = voxelised_sheet(tilt, off, thickness, phase=phase)
+            origins = np.column_stack([rng.uniform(44, 84, n), np.zeros(n), np.full(n, 16.0)])
+            res = trace_beam(ArraySource(vol, chunks=(128, 128, 32)),
+                             Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(n)),
+                             n_wall=1.50, n_poly=1.49, settings=settings_for(method))
+            t = res.transmitted
+            dev.append(np.hypot(res.theta_r[t], res.theta_l[t]))
+        d = np.concatenate(dev)
+        out.append({"tilt_deg": tilt, "rays": int(d.size), "median_deflection_deg": float(np.median(d)),
+                    "share_above_1_deg": float(np.mean(d > 1.0))})
+    return out
 
 
 class _LoadTimer:
@@ -254,7 +279,9 @@ def main() -> None:
     res = {
         "rods_R30": {"paper": rod_errors("paper", 60), "fast": rod_errors("fast", 500),
                      "accurate": rod_errors("accurate", 500)},
-        "tubes_R30": {m: [tube_errors(m, w) for w in (1.5, 2.0, 3.0, 4.0, 6.0)] for m in ("fast", "accurate")},
+        "tubes_R30": {m: [tube_errors(m, w) for w in (1.0, 1.5, 2.0, 3.0, 4.0, 6.0)] for m in ("fast", "accurate")},
+        "sheets": {m: {"wall_1_voxel": sheet_errors(m, 1.0), "polymer_1_voxel": sheet_errors(m, 1.0, phase=0),
+                       "wall_2_voxels": sheet_errors(m, 2.0)} for m in ("fast", "accurate")},
         "birch_0_25mm": birch_speed(block, {"paper": ("paper", 20, 1.49), "fast": ("fast", 1000, 1.49),
                                             "accurate": ("accurate", 1000, 1.49),
                                             "index_matched": ("fast", 1000, 1.50)}),

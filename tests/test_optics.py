@@ -10,7 +10,8 @@ from pipeline.analysis import cauchy_fit, fwhm, haze, summarize
 from pipeline.optics import _kernels as K
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
-from pipeline.optics.validation import rod_deflection_deg, tube_deflection_deg, voxelised_rod, voxelised_tube
+from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod, voxelised_sheet,
+                                       voxelised_tube)
 from pipeline.params import ParameterError, build_params
 
 N_WALL, N_POLY = 1.50, 1.49
@@ -475,16 +476,6 @@ def test_thin_tube_walls_deflect_as_exact_optics(method, wall, median_deg, above
     assert thin / events > 0.2 if wall < 3 else thin / events < 0.01
 
 
-def thin_sheet(alpha_deg, offset, thickness=1.0, n=128, nL=32, phase=1):
-    """A flat sheet of ``phase`` (the other phase around it), ``thickness`` voxels thick
-    and tilted by alpha in the R-T plane: the voxels whose centres lie within it."""
-    a = math.radians(alpha_deg)
-    i, j = np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5, indexing="ij")
-    s = (i - n / 2) * -math.sin(a) + (j - n / 2) * math.cos(a) - offset
-    inside = (s >= 0) & (s < thickness)
-    return np.repeat((inside if phase == 1 else ~inside).astype(np.uint8)[:, :, None], nL, axis=2)
-
-
 @pytest.mark.parametrize("method", ["fast", "accurate"])
 @pytest.mark.parametrize("phase", [1, 0])
 def test_a_one_voxel_flat_sheet_leaves_rays_parallel_to_themselves(method, phase):
@@ -498,7 +489,7 @@ def test_a_one_voxel_flat_sheet_leaves_rays_parallel_to_themselves(method, phase
     for alpha in (60.0, 70.0):
         for off in rng.uniform(0, 1, 2):
             origins = np.column_stack([rng.uniform(44, 84, 100), np.zeros(100), np.full(100, 16.0)])
-            res = trace_beam(ArraySource(thin_sheet(alpha, off, phase=phase), chunks=(128, 128, 32)),
+            res = trace_beam(ArraySource(voxelised_sheet(alpha, off, phase=phase), chunks=(128, 128, 32)),
                              Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(100)),
                              n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method))
             t = res.transmitted

@@ -1,6 +1,9 @@
-"""Exact references for the tracer (SPEC.md §8): voxelised rods and tubes and their deflection laws."""
+"""Exact references for the tracer (SPEC.md §8): voxelised rods, tubes and flat sheets and their
+deflection laws."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -56,3 +59,20 @@ def tube_deflection_deg(b, radius: float, wall: float, m: float) -> np.ndarray:
     d = rod_deflection_deg(b, radius, m)
     d = np.where(lumen, d - rod_deflection_deg(np.where(lumen, b, 0.0), inner, m), d)
     return np.where((ab >= inner) & (ab <= m * inner), np.nan, d)
+
+
+def voxelised_sheet(tilt_deg: float, offset: float, thickness: float = 1.0, size: int = 128,
+                    length: int = 32, phase: int = 1) -> np.ndarray:
+    """A flat sheet of ``phase`` in the other, ``thickness`` voxels thick, tilted by
+    ``tilt_deg`` from the R axis in the R-T plane (its normal is tilt_deg from +T).
+
+    Returns an array of shape (size, size, length), axes [R, T, L]; a voxel is in
+    the sheet when its centre lies between the planes at distances ``offset`` and
+    offset + thickness from the centre of the R-T square.  A ray crossing a flat
+    parallel sheet leaves it parallel to itself: no deflection.
+    """
+    a = math.radians(tilt_deg)
+    i, j = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5, indexing="ij")
+    s = (i - size / 2) * -math.sin(a) + (j - size / 2) * math.cos(a) - offset
+    inside = (s >= 0) & (s < thickness)
+    return np.repeat((inside if phase == 1 else ~inside).astype(np.uint8)[:, :, None], length, axis=2)
