@@ -36,8 +36,8 @@ from pipeline.microstructure.model import generate_block
 from pipeline.optics import _kernels as K
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, svm_normal, trace_beam
-from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod, voxelised_sheet,
-                                       voxelised_tube)
+from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod,
+                                       voxelised_sheet, voxelised_tube)
 from pipeline.params import build_params, make_grid
 
 M_REL = 1.50 / 1.49
@@ -279,7 +279,8 @@ def main() -> None:
     res = {
         "rods_R30": {"paper": rod_errors("paper", 60), "fast": rod_errors("fast", 500),
                      "accurate": rod_errors("accurate", 500)},
-        "tubes_R30": {m: [tube_errors(m, w) for w in (1.0, 1.5, 2.0, 3.0, 4.0, 6.0)] for m in ("fast", "accurate")},
+        "tubes_R30": {m: [tube_errors(m, w) for w in (1.0, 1.5, 2.0, 3.0, 4.0, 6.0)]
+                      for m in ("fast", "accurate")},
         "sheets": {m: {"wall_1_voxel": sheet_errors(m, 1.0), "polymer_1_voxel": sheet_errors(m, 1.0, phase=0),
                        "wall_2_voxels": sheet_errors(m, 2.0)} for m in ("fast", "accurate")},
         "birch_0_25mm": birch_speed(block, {"paper": ("paper", 20, 1.49), "fast": ("fast", 1000, 1.49),

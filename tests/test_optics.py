@@ -10,8 +10,8 @@ from pipeline.analysis import cauchy_fit, fwhm, haze, summarize
 from pipeline.optics import _kernels as K
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
-from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod, voxelised_sheet,
-                                       voxelised_tube)
+from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod,
+                                       voxelised_sheet, voxelised_tube)
 from pipeline.params import ParameterError, build_params
 
 N_WALL, N_POLY = 1.50, 1.49
@@ -729,3 +729,23 @@ def test_index_matched_interfaces_are_counted_but_never_deflect():
     res = trace_beam(src, beam, n_wall=1.53, n_poly=1.53, settings=settings_for("fast"))
     assert res.events.sum() > 100
     assert np.array_equal(res.direction, np.tile(beam.direction / np.linalg.norm(beam.direction), (50, 1)))
+
+
+@pytest.mark.parametrize("valley", [False, True])
+def test_the_axis_across_a_sheet_is_the_hessians_extreme_eigenvector(valley):
+    rng = np.random.default_rng(11)
+    sign = -1.0 if valley else 1.0
+    for _ in range(50):
+        Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        # A ridge (valley): S curves down (up) strongly along Q[:, 0], weakly along the others.
+        H = Q @ np.diag(sign * np.array([-3.0, -0.2, 0.4])) @ Q.T
+        h = (H[0, 0], H[1, 1], H[2, 2], H[0, 1], H[0, 2], H[1, 2])
+        start = unit(Q[:, 0] + 0.3 * rng.normal(size=3))
+        out = start.copy()
+        K._sheet_normal(h, out, valley)
+        assert np.allclose(out, Q[:, 0] * np.sign(Q[:, 0] @ start), atol=1e-9)
+        # No single axis across (two nearly equal curvatures, as along a thin rod): kept.
+        H = Q @ np.diag(sign * np.array([-3.0, -2.9, 0.4])) @ Q.T
+        out = start.copy()
+        K._sheet_normal((H[0, 0], H[1, 1], H[2, 2], H[0, 1], H[0, 2], H[1, 2]), out, valley)
+        assert np.array_equal(out, start)
