@@ -771,6 +771,13 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
 
 
 @njit(inline="always", cache=True, nogil=True)
+def _hess_dot(h, v):
+    """H·v for a symmetric 3 × 3 H stored as (RR, TT, LL, RT, RL, TL)."""
+    return (h[0] * v[0] + h[3] * v[1] + h[4] * v[2], h[3] * v[0] + h[1] * v[1] + h[5] * v[2],
+            h[4] * v[0] + h[5] * v[1] + h[2] * v[2])
+
+
+@njit(inline="always", cache=True, nogil=True)
 def _sheet_normal(h, out, valley):
     """Replace the unit vector ``out`` by the axis across a thin sheet, where the
     Hessian h (RR, TT, LL, RT, RL, TL) curves down most, signed like ``out``;
@@ -852,24 +859,20 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
                               slots)
             if S < 0.0:
                 return -1
-            if it == 0:
+            te = t
+            gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
+            hd0, hd1, hd2 = _hess_dot(hess, d)
+            dhd = d[0] * hd0 + d[1] * hd1 + d[2] * hd2
+            if it == 0:  # the face point: kept for a sheet's normal
                 s0 = S
                 g0 = (out[0], out[1], out[2])
                 h0 = (hess[0], hess[1], hess[2], hess[3], hess[4], hess[5])
-            te = t
-            gd = out[0] * d[0] + out[1] * d[1] + out[2] * d[2]
-            hd0 = hess[0] * d[0] + hess[3] * d[1] + hess[4] * d[2]
-            hd1 = hess[3] * d[0] + hess[1] * d[1] + hess[5] * d[2]
-            hd2 = hess[4] * d[0] + hess[5] * d[1] + hess[2] * d[2]
-            dhd = d[0] * hd0 + d[1] * hd1 + d[2] * hd2
-            if it == 0:
                 # Along the gradient the model S + s|g| + s²ĝᵀHĝ/2 never reaches
                 # 1/2 (whatever the ray's direction): a sheet of either phase
                 # thinner than the smoothing.
+                hg0, hg1, hg2 = _hess_dot(hess, out)
                 gg = out[0] * out[0] + out[1] * out[1] + out[2] * out[2]
-                ghg = (out[0] * (hess[0] * out[0] + hess[3] * out[1] + hess[4] * out[2])
-                       + out[1] * (hess[3] * out[0] + hess[1] * out[1] + hess[5] * out[2])
-                       + out[2] * (hess[4] * out[0] + hess[5] * out[1] + hess[2] * out[2]))
+                ghg = out[0] * hg0 + out[1] * hg1 + out[2] * hg2
                 thin0 = gg * gg - 2.0 * ghg * (S - 0.5) < 0.0
             evaluate = False
         if it >= newton:
