@@ -23,11 +23,12 @@ import math
 import numpy as np
 from numba import njit
 
-from ..microstructure._rng import uniform
+from ..microstructure._rng import normal, uniform
 
 TUBES = 0
 CELLS = 1
 SITE_KIND = 50  # random-stream kind of the site jitter
+NOISE_KIND = 51  # random-stream kind of the normal perturbations
 REACH = 3  # lattice indices searched on each side of a point
 # Ray status (as the voxel tracer's).
 TRANSMITTED = 1
@@ -102,6 +103,10 @@ def phase_grid(geo, kind, seed, xs, ys, out):
 @njit(inline="always", cache=True, nogil=True)
 def _refract(d, nx, ny, n1, n2, out):
     """Snell or total reflection for a unit normal (nx, ny, 0) facing the ray; True if reflected."""
+    if n1 == n2:
+        for q in range(3):
+            out[q] = d[q]
+        return False
     cos_i = -(nx * d[0] + ny * d[1])
     eta = n1 / n2
     sin2_t = eta * eta * (1.0 - cos_i * cos_i)
@@ -280,7 +285,7 @@ def _next_cell_crossing(geo, seed, px, py, dx, dy, medium, t_end, tab):
 
 
 @njit(cache=True, nogil=True)
-def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg_len,
+def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg_len, noise,
           out_dir, out_pos, status, events, medium_out, normals_out):
     """Trace rays (pos (N, 3) [µm] on T = 0, unit dirs (N, 3) with dirs[:, 1] > 0) through the
     lattice between T = 0 and T = thickness, exactly.
@@ -289,7 +294,10 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
     TRAPPED) and the number of interfaces met.  ``seg_len`` [µm]: the
     search for the next crossing looks one segment of this length ahead
     (about a pitch).  ``normals_out`` (N, 2): the normal of the first
-    interface each ray meets (for tests).
+    interface each ray meets (for tests).  ``noise`` [radian] > 0 turns each
+    normal in the R-T plane by a normal deviate of that standard deviation
+    (hashed per ray and interface): how much a normal estimator's error moves
+    what a study reports.
     """
     d = np.empty(3)
     nd = np.empty(3)
@@ -348,6 +356,11 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
                 ny = -ny
             n1 = n_wall if med == 1 else n_poly
             n2 = n_poly if med == 1 else n_wall
+            if noise > 0.0:
+                a = noise * normal(seed, NOISE_KIND, r, ev, 0)
+                ca = math.cos(a)
+                sa = math.sin(a)
+                nx, ny = ca * nx - sa * ny, sa * nx + ca * ny
             if ev == 0:
                 normals_out[r, 0] = nx
                 normals_out[r, 1] = ny

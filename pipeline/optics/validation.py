@@ -151,7 +151,7 @@ class Lattice:
         return LatticeSource(self, thickness_um=thickness_um, voxel_um=voxel_um, chunks=chunks)
 
     def trace(self, origins_um, direction, *, n_wall: float, n_poly: float, thickness_um: float,
-              max_events: int = 100_000) -> "ExactResult":
+              max_events: int = 100_000, backwards: bool = False, normal_noise_deg: float = 0.0) -> "ExactResult":
         """Trace rays exactly through the lattice from T = 0 to T = ``thickness_um``.
 
         Parameters
@@ -162,24 +162,35 @@ class Lattice:
             Directions inside the sample, pointing into it (+T).
         n_wall, n_poly : float
             Refractive indices of the wall (phase 1) and the polymer (phase 0).
+        backwards : bool
+            Rays start on the far face (T = thickness_um) and point into the
+            sample (−T); those leaving through T = 0 are then "transmitted".
+        normal_noise_deg : float
+            Turn every normal in the R-T plane by a normal deviate of this
+            standard deviation [degree] (a hash of the lattice's seed, the ray and
+            the interface): what a normal estimator's error does to the results.
 
         Every crossing is an exact ray-circle or ray-line intersection with
         the normal of that circle or line; Snell's law, or total internal
         reflection (:math:`\\sin^2\\theta_t \\ge 1`), in 3-D.
         """
         pos = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
-        pos[:, 1] = 0.0
+        pos[:, 1] = thickness_um if backwards else 0.0
         n = len(pos)
         dirs = np.array(np.broadcast_to(np.asarray(direction, np.float64), (n, 3)))
         dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-        if np.any(dirs[:, 1] <= 0):
-            raise ValueError("`direction` must point into the sample (+T)")
+        if np.any(dirs[:, 1] >= 0 if backwards else dirs[:, 1] <= 0):
+            raise ValueError(f"`direction` must point into the sample ({'-' if backwards else '+'}T)")
         out_dir, out_pos = np.empty((n, 3)), np.empty((n, 3))
         status, events = np.empty(n, np.int64), np.empty(n, np.int64)
         medium, normals = np.empty(n, np.uint8), np.empty((n, 2))
         _X.trace(self.geo, self.kind, np.uint64(self.seed), pos, dirs, float(n_wall), float(n_poly),
-                 float(thickness_um), int(max_events), float(self.pitch_um), out_dir, out_pos, status, events,
+                 float(thickness_um), int(max_events), float(self.pitch_um), math.radians(normal_noise_deg),
+                 out_dir, out_pos, status, events,
                  medium, normals)
+        if backwards:
+            status = np.where(status == _X.TRANSMITTED, _X.REFLECTED,
+                              np.where(status == _X.REFLECTED, _X.TRANSMITTED, status))
         return ExactResult(out_pos, out_dir, status, events, medium, normals)
 
 
