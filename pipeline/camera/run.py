@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import __version__
 from ..study.run import _atomic_write, cache_key, publish_dataset, wood_record, wood_store
-from ..optics.tracer import TRACER_VERSION
+from ..optics.tracer import TRACER_VERSION, traced_voxel_um
 from .lens import RowsImage, ideal_image, render_rows
 from .scene import CameraStudy, ImageConfig
 
@@ -49,7 +49,8 @@ def image_record(cfg: ImageConfig) -> dict:
     if cfg.sheet is not None:
         sheet = dataclasses.asdict(cfg.sheet)
         sheet["wood"] = cfg.sheet.wood.to_dict()
-        sheet["micro"] = wood_record(cfg.sheet.wood, cfg.sheet.seed, cfg.sheet.voxel_um)
+        sheet["micro"] = wood_record(cfg.sheet.wood, cfg.sheet.seed,
+                                     traced_voxel_um(cfg.sheet.voxel_um, cfg.settings))
     return {"stage": "camera", "version": VERSION, "tracer": TRACER_VERSION,
             "camera": dataclasses.asdict(cfg.camera),
             "sheet": sheet, "object": cfg.target.digest(), "settings": dataclasses.asdict(cfg.settings)}
@@ -70,12 +71,14 @@ def render_block(cfg: ImageConfig, lo: int, hi: int, cache_dir: str) -> RowsImag
     from ..optics.sources import WoodSource
 
     source = None
-    if cfg.sheet is not None:
-        sh = cfg.sheet
+    sh = cfg.sheet
+    if sh is not None:
+        # The sheet's wood on the voxels it is traced on (settings.refine).
+        sh = dataclasses.replace(sh, voxel_um=traced_voxel_um(sh.voxel_um, cfg.settings))
         store = wood_store(cache_dir, sh.wood, sh.seed, sh.voxel_um)
         source = WoodSource(sh.wood, thickness_um=sh.thickness_um, voxel_um=sh.voxel_um,
                             seed=sh.seed, store=store)
-    return render_rows(cfg.camera, cfg.sheet, cfg.target, np.arange(lo, hi), settings=cfg.settings,
+    return render_rows(cfg.camera, sh, cfg.target, np.arange(lo, hi), settings=cfg.settings,
                        source=source)
 
 

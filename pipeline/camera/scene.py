@@ -47,7 +47,7 @@ _TOP = {"title", "description", "sheet", "camera", "trace", "images"}
 _SHEET = {"preset", "wood", "seed", "voxel_um", "thickness_mm", "width_mm", "length_mm",
           "ri_wall", "ri_polymer", "r_axis"}
 _CAMERA = {"sensor_px", "pitch_um", "samples", "seed"}
-_TRACE = {"method", "fresnel"}
+_TRACE = {"method", "fresnel", "refine"}
 _IMAGE = {"focal_mm", "objective_mm", "aperture_mm", "gap_um", "object", "sheet", "description"}
 _SHEET_DEFAULTS = {"preset": "birch", "seed": 1, "voxel_um": 0.5, "thickness_mm": 0.5,
                    "width_mm": 1.5, "length_mm": 1.0, "ri_wall": 1.54, "ri_polymer": 1.53,
@@ -138,7 +138,8 @@ def load_camera(path, *, scale: str = "paper") -> CameraStudy:
     fresnel = trace.get("fresnel", False)
     if not isinstance(fresnel, bool):
         fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {fresnel!r}")
-    settings = settings_for(method, exit="air", fresnel=fresnel)
+    refine = {"refine": integer(trace["refine"], ("trace", "refine"), 1, 8)} if "refine" in trace else {}
+    settings = settings_for(method, exit="air", fresnel=fresnel, **refine)
 
     images = data["images"]
     if not isinstance(images, dict) or not images:

@@ -32,6 +32,13 @@ class TraceSettings:
     method : "paper" (2-voxel steps, midpoint crossing, linear SVM on a
         6×6×6 box), "fast" or "accurate" (exact voxel traversal, crossing on
         the voxel face, gradient of a Gaussian-smoothed wall indicator).
+    refine : generated wood (a function of position) is traced on voxels
+        ``refine`` times smaller than the scene's (the same physical wood,
+        refine³ as many voxels); a user volume is traced on its own voxels.
+        Binary voxels alias walls nearly parallel to a grid axis into
+        staircases whose smoothed normals err by degrees, the same at any
+        voxel size in voxel units; against exact optics of many thin walls
+        (benchmarks/bench_accuracy.py) the error falls about as the voxel.
     """
 
     method: str = "accurate"
@@ -44,6 +51,7 @@ class TraceSettings:
     fresnel: bool = False
     max_events: int = 2000  # a ray meets ~170 interfaces in 1.5 mm of birch; guided rays bounce on
     exit: str = "internal"  # angles "internal" (in the sample) or after refraction into "air"
+    refine: int = 1  # generated wood traced on voxels this many times smaller
 
     def validate(self) -> "TraceSettings":
         if self.method not in PRESETS:
@@ -57,6 +65,8 @@ class TraceSettings:
                                  f"{self.sigma_vox!r}, {self.radius_vox!r}")
         if not 0 <= self.refit <= self.newton:
             raise ParameterError(f"`refit` must be in [0, newton = {self.newton!r}], got {self.refit!r}")
+        if isinstance(self.refine, bool) or not isinstance(self.refine, int) or not 1 <= self.refine <= 8:
+            raise ParameterError(f"`refine` must be an integer in [1, 8], got {self.refine!r}")
         if self.max_events < 1:
             raise ParameterError(f"`max_events` must be >= 1, got {self.max_events!r}")
         return self
@@ -64,15 +74,20 @@ class TraceSettings:
 
 # Bump when the kernels' numbers change for the same inputs (part of the
 # study and camera cache keys, so cached rays and images are traced again).
-TRACER_VERSION = "6"
+TRACER_VERSION = "7"
 
 PRESETS = {
     "paper": TraceSettings(method="paper"),
     # One window evaluation; the Newton steps run on its second-order model.
     "fast": TraceSettings(method="fast", sigma_vox=1.75, radius_vox=5.25, newton=3, refit=0),
-    # The window evaluated again after the first Newton step.
-    "accurate": TraceSettings(method="accurate", sigma_vox=2.0, radius_vox=6.0, newton=3, refit=1),
+    # The window evaluated again after the first Newton step, on voxels half the scene's.
+    "accurate": TraceSettings(method="accurate", sigma_vox=2.0, radius_vox=6.0, newton=3, refit=1, refine=2),
 }
+
+
+def traced_voxel_um(voxel_um: float, settings: TraceSettings) -> float:
+    """The voxel [µm] generated wood is traced on: the scene's, divided by ``settings.refine``."""
+    return voxel_um / settings.refine
 
 
 def settings_for(method: str, **changes) -> TraceSettings:

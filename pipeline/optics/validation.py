@@ -328,6 +328,9 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
     """Trace the same beam through ``lattice`` exactly and through its voxelisation at
     ``voxel_um`` with ``settings`` (a TraceSettings), and compare what a study reports.
 
+    The lattice is a function of position, so it is voxelised at
+    ``voxel_um / settings.refine``, as generated wood is.
+
     Returns FWHM_R [degree] and haze of both, the relative FWHM_R error, the haze
     error [points], the KS statistic of θ_R (plain and at 0.25° resolution),
     interfaces per ray, and the voxel trace's wall time [s].  With ``n_boot`` > 0,
@@ -338,8 +341,9 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
     from scipy import stats
 
     from ..analysis import fwhm, haze
-    from .tracer import square_beam, trace_beam
+    from .tracer import square_beam, trace_beam, traced_voxel_um
 
+    voxel_um = traced_voxel_um(voxel_um, settings)
     beam = square_beam(n_rays, beam_um / voxel_um, seed=seed)
     ex = lattice.trace(beam.origins * voxel_um, beam.direction, n_wall=n_wall, n_poly=n_poly,
                        thickness_um=thickness_um)
@@ -357,6 +361,7 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
         "ks_025deg": smoothed_ks(vx.theta_r[tv], ex.theta_r[te]),
         "interfaces_exact": float(ex.events.mean()), "interfaces": float(vx.events.mean()),
         "transmitted_exact": int(te.sum()), "transmitted": int(tv.sum()), "seconds": elapsed,
+        "traced_voxel_um": voxel_um,
     }
     if n_boot:
         rng = np.random.default_rng(seed)

@@ -130,12 +130,12 @@ def wood_store(cache_dir, wood, seed: int, voxel_um: float) -> WoodChunkStore:
 
 
 def micro_record(scene: Scene) -> dict:
-    return wood_record(scene.wood, scene.seed, scene.voxel_um)
+    return wood_record(scene.wood, scene.seed, scene.trace_voxel_um)
 
 
 def beam_geometry(scene: Scene) -> tuple[int, float]:
-    """(thickness, beam width) in voxels."""
-    return int(round(scene.thickness_um / scene.voxel_um)), scene.beam_um / scene.voxel_um
+    """(thickness, beam width) in the voxels traced."""
+    return int(round(scene.thickness_um / scene.trace_voxel_um)), scene.beam_um / scene.trace_voxel_um
 
 
 # Voxels beyond the beam's edge that its first normals read (the largest window radius).
@@ -197,7 +197,7 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
 
 
 def _store(m: Micro) -> WoodChunkStore:
-    return WoodChunkStore(m.path, m.scene.wood, seed=m.scene.seed, voxel_um=m.scene.voxel_um,
+    return WoodChunkStore(m.path, m.scene.wood, seed=m.scene.seed, voxel_um=m.scene.trace_voxel_um,
                           chunks=CHUNKS)
 
 
@@ -221,9 +221,9 @@ def trace_shard(m: Micro, scene: Scene, shard: Shard, *_after) -> str:
     from ..optics.tracer import Beam, square_beam, trace_beam
 
     store = _store(m)
-    source = WoodSource(scene.wood, thickness_um=scene.thickness_um, voxel_um=scene.voxel_um,
+    source = WoodSource(scene.wood, thickness_um=scene.thickness_um, voxel_um=scene.trace_voxel_um,
                         seed=scene.seed, store=store)
-    beam = square_beam(scene.rays, scene.beam_um / scene.voxel_um, (0.0, 0.0), seed=scene.seed)
+    beam = square_beam(scene.rays, beam_geometry(scene)[1], (0.0, 0.0), seed=scene.seed)
     part = Beam(beam.origins[shard.lo:shard.hi], beam.direction, beam.ray_ids[shard.lo:shard.hi])
     r = trace_beam(source, part, n_wall=scene.n_wall, n_poly=scene.ri_polymer,
                    settings=scene.settings, seed=scene.seed)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..optics.tracer import PRESETS, TraceSettings, settings_for
+from ..optics.tracer import PRESETS, TraceSettings, settings_for, traced_voxel_um
 from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, load_preset,
                       read_yaml_file, validate, yaml_locator)
 
@@ -41,7 +41,7 @@ SCALES = {
 
 _TOP = {"title", "description", "preset", "wood", "seed", "thickness_mm", "delta_ri",
         "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary"}
-_TRACE = {"method", "exit", "fresnel"}
+_TRACE = {"method", "exit", "fresnel", "refine"}
 _SCENE_VARIABLES = {
     # name: (dimension, units, long_name)
     "thickness_mm": ("thickness", "mm", "TW sample thickness along T"),
@@ -68,6 +68,11 @@ class Scene:
     @property
     def n_wall(self) -> float:
         return self.ri_polymer + self.delta_ri
+
+    @property
+    def trace_voxel_um(self) -> float:
+        """The voxel the wood is generated and traced on [µm] (``settings.refine`` times smaller)."""
+        return traced_voxel_um(self.voxel_um, self.settings)
 
 
 @dataclass(frozen=True)
@@ -161,9 +166,10 @@ def load_study(path, *, scale: str = "paper") -> Study:
         fail(("trace", "method"), f"`trace.method` must be one of {', '.join(PRESETS)}, got {method!r}")
     if "fresnel" in trace and not isinstance(trace["fresnel"], bool):
         fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {trace['fresnel']!r}")
+    changes = {"refine": trace["refine"]} if "refine" in trace else {}
     try:
         settings = settings_for(method, exit=trace.get("exit", "internal"),
-                                fresnel=bool(trace.get("fresnel", False)))
+                                fresnel=bool(trace.get("fresnel", False)), **changes)
     except ParameterError as exc:
         raise ParameterError(where("trace") + "`trace." + str(exc).lstrip("`")) from None
 
