@@ -173,6 +173,22 @@ def test_trace_user_volume_npy_index_matched(tmp_path, capsys):
     assert s["interfaces_per_ray"] == 2.0
 
 
+def test_a_user_volume_is_traced_on_its_own_voxels(tmp_path, capsys):
+    import json
+
+    vol = np.zeros((40, 30, 40), np.uint8)
+    vol[:, 10:14, :] = 1
+    np.save(tmp_path / "v.npy", vol)
+    code, stdout, err = run(capsys, "trace", "--volume", str(tmp_path / "v.npy"), "--delta-ri", "0.01",
+                            "--rays", "20", "--beam-um", "10", "--method", "accurate", "--json")
+    assert code == 0, err
+    s = json.loads(stdout)
+    assert s["refine"] == 1 and s["traced_voxel_um"] == 0.5  # accurate's refine needs a model
+    code, _, err = run(capsys, "trace", "--volume", str(tmp_path / "v.npy"), "--delta-ri", "0.01",
+                       "--refine", "2")
+    assert code == 2 and "`refine` applies to generated wood" in err and err.count("\n") == 1
+
+
 def test_trace_oblique_beam_from_air_with_negative_angles(tmp_path, capsys):
     """`--incidence-deg -10,5` (negative values read as values, as `--delta-ri -1e-3` is):
     through an index-matched sample every ray leaves into air at exactly those angles."""
@@ -207,6 +223,8 @@ def test_trace_oblique_beam_from_air_with_negative_angles(tmp_path, capsys):
     (["--incidence-deg", "95,0"], "incidence_deg"),
     (["--incidence-deg", "5"], "incidence_deg"),
     (["--incidence-deg", "-5,x"], "incidence_deg"),
+    (["--refine", "0"], "refine"),
+    (["--refine", "12"], "refine"),
 ])
 def test_trace_bad_input(tmp_path, capsys, extra, field):
     argv = ["trace", "--preset", "birch", "--thickness-mm", "0.05", "--delta-ri", "0.01",

@@ -372,6 +372,13 @@ def test_chunk_sets_of_live_rays_are_exact():
         assert np.array_equal(_unique_rows(lo), np.unique(lo, axis=0))
 
 
+@pytest.mark.parametrize("refine", [0, 9, 1.5, True, "2"])
+def test_refine_is_an_integer_from_1_to_8(refine):
+    with pytest.raises(ParameterError, match="`refine` must be an integer in \\[1, 8\\]"):
+        settings_for("accurate", refine=refine)
+    assert settings_for("accurate").refine == 2 and settings_for("fast").refine == 1
+
+
 @pytest.mark.parametrize("change, message", [
     ({"refit": 4}, r"`refit` must be in \[0, newton = 3\], got 4"),
     ({"radius_vox": 30.0}, r"`radius_vox` in \[1, 24\], got 1.75, 30.0"),

@@ -14,7 +14,7 @@ from pipeline.cli import main
 from pipeline.microstructure.store import WoodChunkStore
 from pipeline.optics.sources import WoodSource
 from pipeline.params import ParameterError, build_params
-from pipeline.study.run import (_atomic_write, compute, plan_study, study_dataset, write_dataset)
+from pipeline.study.run import (_atomic_write, _store, compute, plan_study, study_dataset, write_dataset)
 from pipeline.study.spec import load_study
 
 TABLE1 = Path(__file__).resolve().parent.parent / "studies" / "table1"
@@ -111,6 +111,8 @@ def test_studies_share_the_wood_and_scenes_they_have_in_common(tmp_path):
     ("rays: -4\n", "line 1: `rays` must be a positive integer"),
     ("thickness_mm: thick\n", "line 1: `thickness_mm` must be a number"),
     ("wood:\n  wall_thickness_um: 12\n", "`wall_thickness_um` must be < "),
+    ("trace:\n  refine: 0\n", "line 2: `trace.refine` must be an integer in [1, 8]"),
+    ("trace:\n  refine: 2.5\n", "line 2: `trace.refine` must be an integer in [1, 8]"),
 ])
 def test_bad_study_files_name_file_line_and_field(tmp_path, text, needle, capsys):
     path = tmp_path / "bad.yaml"
@@ -318,3 +320,41 @@ def test_dataset_coordinates_for_booleans_and_laminates(tmp_path, client):
     assert len(plan.micros) == 2
     ds2 = study_dataset(plan)
     assert ds2.laminate.attrs["units"] == "degree"
+
+
+def test_accurate_models_the_wood_on_voxels_half_the_studys_and_refine_is_a_setting(tmp_path):
+    """The wood is a function of position: `accurate` generates and traces it on voxels
+    ``refine`` (2) times smaller than the study's, the same physical wood, cached as its own
+    microstructure; a study may set trace.refine for any method."""
+    path = tiny(tmp_path, [0.01])
+    fast = load_study(path).scenes[0]
+    assert fast.settings.refine == 1 and fast.trace_voxel_um == fast.voxel_um == 0.5
+    path.write_text(path.read_text().replace("trace: {method: fast}", "trace: {method: accurate}"))
+    acc = load_study(path).scenes[0]
+    assert acc.settings.refine == 2 and acc.trace_voxel_um == 0.25 and acc.voxel_um == 0.5
+    path.write_text(path.read_text().replace("trace: {method: accurate}", "trace: {method: fast, refine: 3}"))
+    three = load_study(path).scenes[0]
+    assert three.settings.method == "fast" and three.trace_voxel_um == pytest.approx(0.5 / 3)
+    plans = {s.settings.refine: plan_study(load_study(p), tmp_path / "c") for s, p in
+             ((fast, tiny(tmp_path, [0.01], "a.yaml")), (three, path))}
+    m1, m3 = (next(iter(plans[k].micros.values())) for k in (1, 3))
+    assert m1.key != m3.key
+    assert _store(m3).voxel_um == pytest.approx(0.5 / 3) and _store(m1).voxel_um == 0.5
+
+
+def test_a_refined_study_equals_the_trace_command_for_the_same_scene(tmp_path, client, capsys):
+    study = tiny(tmp_path, [0.02])
+    study.write_text(study.read_text().replace("trace: {method: fast}", "trace: {method: fast, refine: 2}"))
+    out, _, _ = run(study, tmp_path / "c", tmp_path / "r", client)
+    ds = xr.open_zarr(out, consolidated=False)
+    assert main(["trace", "--preset", "birch", "--thickness-mm", "0.03", "--delta-ri", "0.02",
+                 "--rays", "40", "--beam-um", "25", "--method", "fast", "--refine", "2", "--seed", "3",
+                 "--json"]) == 0
+    cli = json.loads(capsys.readouterr().out)
+    assert cli["refine"] == 2 and cli["traced_voxel_um"] == 0.25
+    assert cli["fwhm_r_deg"] == float(ds.FWHM_R[0]) and cli["haze"] == float(ds.haze[0])
+    # The same beam on the study's own voxels is another model of the same wood.
+    assert main(["trace", "--preset", "birch", "--thickness-mm", "0.03", "--delta-ri", "0.02",
+                 "--rays", "40", "--beam-um", "25", "--method", "fast", "--seed", "3", "--json"]) == 0
+    coarse = json.loads(capsys.readouterr().out)
+    assert coarse["refine"] == 1 and coarse["fwhm_r_deg"] != cli["fwhm_r_deg"]
