@@ -9,7 +9,7 @@ SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
-.PHONY: install demo test bench bench-generate bench-trace bench-study bench-camera clean table1 camera $(STUDIES)
+.PHONY: install demo test bench bench-generate bench-trace bench-study bench-camera bench-accuracy clean table1 camera $(STUDIES)
 
 install: $(STAMP)
 
@@ -56,3 +56,7 @@ bench-study: install
 
 bench-camera: install
 	$(BIN)/python benchmarks/bench_camera.py --out results/bench.json
+
+## Every method against exact optics of many thin walls -> results/accuracy.json and results/accuracy.md.
+bench-accuracy: install
+	$(BIN)/python benchmarks/bench_accuracy.py --out results/accuracy.json
