@@ -40,7 +40,7 @@ demo: install
 test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-bench: bench-generate bench-trace bench-study bench-camera
+bench: bench-generate bench-trace bench-study bench-camera bench-accuracy
 
 bench-generate: install
 	$(BIN)/python benchmarks/bench_generate.py --out results/bench.json

@@ -212,16 +212,17 @@ def test_every_method_is_compared_with_exact_optics_of_many_thin_walls(method, r
     """Every method, each reference family, both signs of ΔRI, at small size.  None meets the
     accuracy targets on walls of 4 voxels: they are measured and published by
     `make bench-accuracy` (results/accuracy.md).  What holds here: every ray crosses about
-    as many interfaces as in exact optics, and the results are off by at most a bound that
-    catches a broken traversal or normal (a ray passing walls unseen, a normal of the wrong
-    sign: several hundred % and tens of haze points)."""
+    as many interfaces as in exact optics (the paper's 2-voxel steps skip some oblique
+    crossings: 12 % fewer on the tubes), and the results are off by at most a bound that
+    catches a broken traversal or normal (walls passed unseen, normals at random: several
+    hundred % and tens of haze points)."""
     lat = (tube_lattice(14.5, 7.25, 2.0, rotation_deg=8.0) if family == "tubes"
            else honeycomb(14.5, 2.0, jitter=0.15, seed=3))
     for n_wall, n_poly in ((1.50, 1.49), (1.49, 1.50)):
         r = compare_with_exact(lat, settings_for(method), voxel_um=0.5, thickness_um=100.0, n_wall=n_wall,
                                n_poly=n_poly, n_rays=rays)
         assert r["transmitted"] == rays
-        assert abs(r["interfaces"] / r["interfaces_exact"] - 1) < 0.1, r
+        assert abs(r["interfaces"] / r["interfaces_exact"] - 1) < (0.2 if method == "paper" else 0.1), r
         if method == "accurate":
             assert abs(r["fwhm_r_error"]) < 1.6 and abs(r["haze_error_points"]) < 6.0, r
         else:
