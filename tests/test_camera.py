@@ -224,6 +224,8 @@ def test_camera_file_renders_on_a_cluster_and_caches_its_images(tmp_path, client
      "line 6: `images.a.sheet.ri_wall` must be a number"),
     ("images:\n  a:\n    focal_mm: 0.2\n    objective_mm: 0.4\n    aperture_mm: 0.1\n"
      "    object: {kind: square, size_mm: 1}\n", "line 2: `images.a`: the sheet must lie between the lens"),
+    ("trace:\n  method: fast\n  refine: 0\nimages:\n  a:\n    focal_mm: 10\n    objective_mm: 30\n"
+     "    aperture_mm: 1\n    object: {kind: square, size_mm: 1}\n", "line 3: `trace.refine` must be"),
 ])
 def test_bad_camera_files_name_file_line_and_field(tmp_path, text, needle, capsys):
     path = tmp_path / "bad.yaml"

@@ -166,7 +166,12 @@ def load_study(path, *, scale: str = "paper") -> Study:
         fail(("trace", "method"), f"`trace.method` must be one of {', '.join(PRESETS)}, got {method!r}")
     if "fresnel" in trace and not isinstance(trace["fresnel"], bool):
         fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {trace['fresnel']!r}")
-    changes = {"refine": trace["refine"]} if "refine" in trace else {}
+    changes = {}
+    if "refine" in trace:
+        refine = trace["refine"]
+        if isinstance(refine, bool) or not isinstance(refine, int) or not 1 <= refine <= 8:
+            fail(("trace", "refine"), f"`trace.refine` must be an integer in [1, 8], got {refine!r}")
+        changes["refine"] = refine
     try:
         settings = settings_for(method, exit=trace.get("exit", "internal"),
                                 fresnel=bool(trace.get("fresnel", False)), **changes)
