@@ -8,7 +8,7 @@ import pytest
 from scipy import ndimage as ndi
 
 from pipeline.microstructure.model import N_STATS, STAT_NAMES, generate_block
-from pipeline.params import build_params, make_grid
+from pipeline.params import Grid, build_params, make_grid
 
 V = 0.5  # µm
 
@@ -285,3 +285,13 @@ def test_generated_voxels_are_pinned_for_the_cache_version(preset, overrides, st
     assert VERSIONS["micro"] == "1", "new micro version: re-pin these digests"
     assert got == digest, (f"the voxels of {holds} changed; if that is intended, bump "
                            f"VERSIONS['micro'] in pipeline/study/run.py and re-pin")
+
+
+def test_the_same_wood_at_half_the_voxel_agrees_at_every_shared_voxel_centre():
+    """What `refine` relies on: the model is a function of position, so wood generated on
+    0.25 µm voxels is the 0.5 µm wood at the centres the two grids share."""
+    p = build_params("birch")
+    coarse = generate_block(p, Grid((0, 0, 0), 0.5, (0.0, 0.0, 0.0)), (-20, 3, 40), (48, 40, 32), seed=4)
+    fine = generate_block(p, Grid((0, 0, 0), 0.25, (0.125, 0.125, 0.125)), (-40, 6, 80), (96, 80, 64), seed=4)
+    assert 0.2 < coarse.mean() < 0.6
+    assert np.array_equal(coarse, fine[::2, ::2, ::2])
