@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
 import re
 import shutil
 import sys
@@ -87,7 +88,7 @@ def _client(workers, scheduler):
 
 
 def cmd_generate(args) -> int:
-    from .microstructure.volume import WoodVolume, publish, staged_path
+    from .microstructure.volume import WoodVolume, check_replaceable, publish, staged_path
 
     params = build_params(args.preset, args.config, parse_set(args.overrides))
     size = parse_triple(args.size_um, "size_um", positive=True)
@@ -97,8 +98,7 @@ def cmd_generate(args) -> int:
     workers = _int(args.workers, "workers", 1) if args.workers is not None else None
     grid = make_grid(size, _float(args.voxel_um, "voxel_um"), origin, params)
     out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        raise ParameterError(f"`out` must not exist already (use --overwrite), got {str(out)!r}")
+    check_replaceable(out, args.overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     staged = staged_path(out)
     client = cluster = None
@@ -175,6 +175,8 @@ def cmd_trace(args) -> int:
     voxel = _float(args.voxel_um, "voxel_um")
     if not voxel > 0:
         raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel:g}")
+    if args.out:
+        _check_rays_out(Path(args.out))
     dri = _float(args.delta_ri, "delta_ri")
     n_poly = _float(args.ri_polymer, "ri_polymer")
     n_wall = n_poly + dri
@@ -289,10 +291,44 @@ def _write_rays(result, summary, voxel, out):
         attrs={"Conventions": "CF-1.10", "title": "twray per-ray trace result",
                "source": f"twray {__version__}", "summary": json.dumps(summary)},
     )
-    if str(out).endswith(".zarr"):
-        ds.to_zarr(out, mode="w")
-    else:
-        ds.to_netcdf(out, engine="scipy")
+    from .microstructure.volume import publish, staged_path
+
+    out = Path(out)
+    _check_rays_out(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staged = staged_path(out)
+    try:
+        if out.suffix == ".zarr":
+            ds.to_zarr(staged, mode="w-")
+            publish(staged, out, overwrite=True)
+        else:
+            ds.to_netcdf(staged, engine="scipy")
+            os.replace(staged, out)
+    finally:
+        if staged.is_dir():
+            shutil.rmtree(staged, ignore_errors=True)
+        elif staged.exists():
+            staged.unlink()
+
+
+def _check_rays_out(out: Path) -> None:
+    """A per-ray result replaces only an earlier twray result: never another folder or file."""
+    from .microstructure.volume import check_replaceable
+
+    if out.suffix == ".zarr":
+        check_replaceable(out, True)
+        return
+    if out.exists() or out.is_symlink():
+        try:
+            import xarray as xr
+
+            with xr.open_dataset(out, engine="scipy") as old:
+                ours = str(old.attrs.get("source", "")).startswith("twray ")
+        except Exception:
+            ours = False
+        if not ours or not out.is_file():
+            raise ParameterError(f"`out` exists and is not a result twray wrote: it is replaced only then, "
+                                 f"got {str(out)!r}")
 
 
 def _add_cluster_options(p) -> None:

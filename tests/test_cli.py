@@ -117,6 +117,52 @@ def test_existing_output_is_not_overwritten_without_flag(tmp_path, capsys):
     assert np.array_equal(WoodVolume.open(out)[:, :, :], before)
 
 
+def test_overwrite_replaces_a_volume_twray_wrote_and_nothing_else(tmp_path, capsys):
+    out = tmp_path / "v.zarr"
+    assert run(capsys, "generate", "--size-um", "5,5,5", "--out", str(out))[0] == 0
+    before = WoodVolume.open(out)[:, :, :]
+    assert run(capsys, "generate", "--size-um", "5,5,5", "--seed", "9", "--out", str(out), "--overwrite")[0] == 0
+    assert not np.array_equal(WoodVolume.open(out)[:, :, :], before)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.zarr"]  # nothing staged or set aside is left
+    # A folder, a file, or a Zarr store that twray did not write is never deleted.
+    folder = tmp_path / "thesis"
+    folder.mkdir()
+    (folder / "chapter1.tex").write_text("precious")
+    plain = tmp_path / "notes.txt"
+    plain.write_text("precious")
+    other = tmp_path / "other.zarr"
+    other.mkdir()
+    (other / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {"x": 1}}')
+    for victim in (folder, plain, other):
+        code, _, err = run(capsys, "generate", "--size-um", "5,5,5", "--out", str(victim), "--overwrite")
+        assert code == 2 and "not a store twray wrote" in err and err.count("\n") == 1
+    assert (folder / "chapter1.tex").read_text() == "precious" and plain.read_text() == "precious"
+    assert (other / "zarr.json").exists()
+    with pytest.raises(Exception, match="not a store twray wrote"):
+        WoodVolume.create(folder, WoodVolume.open(out).params, WoodVolume.open(out).grid, seed=1,
+                          overwrite=True)
+    assert (folder / "chapter1.tex").exists()
+
+
+def test_trace_out_replaces_its_own_result_but_no_other_file(tmp_path, capsys):
+    argv = ["trace", "--preset", "birch", "--thickness-mm", "0.02", "--delta-ri", "0.01", "--rays", "10",
+            "--beam-um", "10", "--method", "fast"]
+    for name in ("r.nc", "r.zarr"):
+        out = tmp_path / name
+        assert run(capsys, *argv, "--out", str(out))[0] == 0
+        assert run(capsys, *argv, "--seed", "2", "--out", str(out))[0] == 0  # its own: replaced
+    precious = tmp_path / "data.nc"
+    precious.write_bytes(b"not twray's")
+    folder = tmp_path / "folder.zarr"
+    folder.mkdir()
+    (folder / "keep.txt").write_text("precious")
+    for victim in (precious, folder):
+        code, _, err = run(capsys, *argv, "--out", str(victim))
+        assert code == 2 and "not a" in err and "twray wrote" in err
+    assert precious.read_bytes() == b"not twray's" and (folder / "keep.txt").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data.nc", "folder.zarr", "r.nc", "r.zarr"]
+
+
 def test_failure_during_generation_leaves_nothing(tmp_path, capsys, monkeypatch):
     from pipeline.microstructure import volume
 

@@ -141,8 +141,7 @@ class WoodVolume:
             raise ParameterError(f"`chunks` must be three positive integers R,T,L, got {chunks!r}")
         if not isinstance(seed, (int, np.integer)) or seed < 0 or seed >= 2**63:
             raise ParameterError(f"`seed` must be an integer in [0, 2**63), got seed={seed!r}")
-        if path.exists() and not overwrite:
-            raise ParameterError(f"`out` must not exist already (use --overwrite), got {str(path)!r}")
+        check_replaceable(path, overwrite)
         chunks = tuple(min(c, s) for c, s in zip(chunks, grid.shape))
         group = zarr.open_group(path, mode="w", zarr_format=3)
         group.attrs["ome"] = _ome_attrs(grid, path.stem)
@@ -328,13 +327,51 @@ def staged_path(out: Path) -> Path:
     return out.with_name(f".{out.name}.partial-{uuid.uuid4().hex[:8]}")
 
 
-def publish(staged: Path, out: Path, overwrite: bool) -> None:
-    """Move a finished store into place (atomic rename on one filesystem)."""
-    if out.exists():
+def written_by_twray(path: Path) -> bool:
+    """Whether ``path`` is a Zarr store twray wrote: a wood volume (attribute ``twray``) or a
+    Dataset whose ``source`` attribute names twray."""
+    path = Path(path)
+    if path.is_symlink() or not (path / "zarr.json").is_file():
+        return False
+    try:
+        attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError, AttributeError):
+        return False
+    return isinstance(attrs, dict) and ("twray" in attrs or str(attrs.get("source", "")).startswith("twray "))
+
+
+def check_replaceable(out: Path, overwrite: bool) -> None:
+    """Refuse an existing ``out`` unless ``overwrite`` is given and it is a store twray wrote.
+
+    ``--overwrite`` replaces twray's own output, never another folder or file.
+    """
+    out = Path(out)
+    if out.exists() or out.is_symlink():
         if not overwrite:
             raise ParameterError(f"`out` must not exist already (use --overwrite), got {str(out)!r}")
-        shutil.rmtree(out)
-    os.replace(staged, out)
+        if not written_by_twray(out):
+            raise ParameterError(f"`out` exists and is not a store twray wrote: --overwrite replaces only "
+                                 f"those, got {str(out)!r}")
+
+
+def publish(staged: Path, out: Path, overwrite: bool) -> None:
+    """Move a finished store into place (a rename on one filesystem).
+
+    An existing ``out`` (only a store twray wrote, with ``overwrite``) is first renamed
+    aside, so that ``out`` holds at every moment either the old store or the new one.
+    """
+    check_replaceable(out, overwrite)
+    if not out.exists():
+        os.replace(staged, out)
+        return
+    old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
+    os.replace(out, old)
+    try:
+        os.replace(staged, out)
+    except BaseException:
+        os.replace(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def describe(path: str | Path) -> str:
