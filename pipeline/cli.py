@@ -73,11 +73,29 @@ def _float(text: str, name: str) -> float:
         raise ParameterError(f"`{name}` must be a number, got {name}={text!r}") from None
 
 
+CONNECT_TIMEOUT = "5s"  # a scheduler that does not answer by then is unreachable
+
+
+def _connect(address=None, scheduler_file=None):
+    """A client of a running Dask scheduler, or one line (ParameterError) if it cannot be reached."""
+    from distributed import Client
+
+    name, value = ("scheduler_file", scheduler_file) if scheduler_file is not None else ("scheduler", address)
+    if scheduler_file is not None and not Path(scheduler_file).is_file():
+        raise ParameterError(f"`scheduler_file` must be an existing scheduler file, got {scheduler_file!r}")
+    try:
+        if scheduler_file is not None:
+            return Client(scheduler_file=scheduler_file, timeout=CONNECT_TIMEOUT)
+        return Client(address, timeout=CONNECT_TIMEOUT)
+    except (OSError, TimeoutError, ValueError) as exc:
+        reason = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise ParameterError(f"`{name}` must be a Dask scheduler that answers within {CONNECT_TIMEOUT}, "
+                             f"got {name}={value!r} ({reason})") from None
+
+
 def _client(workers, scheduler):
     if scheduler:
-        from distributed import Client
-
-        return Client(scheduler), None
+        return _connect(scheduler), None
     if workers is not None:
         from distributed import Client, LocalCluster
 
@@ -97,7 +115,7 @@ def cmd_generate(args) -> int:
     seed = _int(args.seed, "seed", 0)
     workers = _int(args.workers, "workers", 1) if args.workers is not None else None
     grid = make_grid(size, _float(args.voxel_um, "voxel_um"), origin, params)
-    out = Path(args.out)
+    out = Path(args.out).absolute()  # workers of a remote scheduler have their own working folder
     check_replaceable(out, args.overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     staged = staged_path(out)
@@ -370,9 +388,9 @@ def _study_client(args):
     if args.scheduler and args.scheduler_file:
         raise ParameterError("give either `--scheduler` or `--scheduler-file`, not both")
     if args.scheduler:
-        return Client(args.scheduler), None
+        return _connect(args.scheduler), None
     if args.scheduler_file:
-        return Client(scheduler_file=args.scheduler_file), None
+        return _connect(scheduler_file=args.scheduler_file), None
     workers = _int(args.workers, "workers", 1) if args.workers is not None else 1
     cores = os.cpu_count() or 1
     threads = (_int(args.threads, "threads", 1) if args.threads is not None
@@ -381,6 +399,15 @@ def _study_client(args):
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True)
     return Client(cluster), cluster
+
+
+def _absolute_paths(args) -> None:
+    """The cache and results folders as absolute paths, resolved here on the client: the
+    workers of a scheduler elsewhere have their own working folder."""
+    if not args.cache or not args.results:
+        raise ParameterError(f"`cache` and `results` must be folder paths, got {args.cache!r} and {args.results!r}")
+    args.cache = str(Path(args.cache).absolute())
+    args.results = str(Path(args.results).absolute())
 
 
 @contextlib.contextmanager
@@ -403,6 +430,7 @@ def cmd_study(args) -> int:
     shard_rays = _int(args.shard_rays, "shard_rays", 1)
     if args.workers is not None:
         _int(args.workers, "workers", 1)
+    _absolute_paths(args)
     studies = [load_study(f, scale=args.scale) for f in args.files]
     names = [s.name for s in studies]
     if len(set(names)) != len(names):
@@ -454,6 +482,7 @@ def cmd_camera(args) -> int:
     rows = _int(args.rows_per_task, "rows_per_task", 1)
     if args.workers is not None:
         _int(args.workers, "workers", 1)
+    _absolute_paths(args)
     study = load_camera(args.file, scale=args.scale)
     t0 = time.perf_counter()
     entries = plan_camera(study, args.cache)

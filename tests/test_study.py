@@ -358,3 +358,34 @@ def test_a_refined_study_equals_the_trace_command_for_the_same_scene(tmp_path, c
                  "--rays", "40", "--beam-um", "25", "--method", "fast", "--seed", "3", "--json"]) == 0
     coarse = json.loads(capsys.readouterr().out)
     assert coarse["refine"] == 1 and coarse["fwhm_r_deg"] != cli["fwhm_r_deg"]
+
+
+def test_an_unreachable_scheduler_is_one_line_within_seconds_and_nothing_is_written(tmp_path, capsys):
+    path = tiny(tmp_path, [0.01])
+    t0 = time.perf_counter()
+    code = main(["study", str(path), "--scale", "small", "--scheduler", "tcp://127.0.0.1:9",
+                 "--cache", str(tmp_path / "c"), "--results", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and time.perf_counter() - t0 < 15
+    assert err.count("\n") == 0 and "`scheduler` must be a Dask scheduler that answers within" in err
+    assert not (tmp_path / "c").exists() and not (tmp_path / "r").exists()
+
+
+def test_relative_cache_and_results_are_the_clients_on_a_scheduler_whose_workers_live_elsewhere(
+        tmp_path, monkeypatch, capsys):
+    from distributed import Client, LocalCluster
+
+    elsewhere = tmp_path / "worker-home"
+    elsewhere.mkdir()
+    here = tmp_path / "me"
+    here.mkdir()
+    study = tiny(here, [0.01])
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as c:
+        c.run(os.chdir, str(elsewhere))  # the workers' working folder is not the client's
+        monkeypatch.chdir(here)
+        code = main(["study", "tiny.yaml", "--scale", "small", "--scheduler", cluster.scheduler_address,
+                     "--cache", "cache", "--results", "out"])
+    assert code == 0, capsys.readouterr().err
+    assert (here / "cache" / "rays").is_dir() and (here / "out" / "tiny.zarr").is_dir()
+    assert list(elsewhere.iterdir()) == []

@@ -191,8 +191,12 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
     for m in micros.values():
         needed = any(not s.cached for s in shards if s.micro == m.key)
         if needed:
-            store = _store(m)
-            m.todo = [c for c in m.column if not store.stored(c)]
+            # Planning writes nothing: a store that does not exist yet holds no chunk.
+            if m.path.exists():
+                store = _store(m)
+                m.todo = [c for c in m.column if not store.stored(c)]
+            else:
+                m.todo = list(m.column)
     return Plan(study, micros, shards, summaries)
 
 
