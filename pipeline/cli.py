@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import math
 import os
 import re
@@ -408,6 +409,13 @@ def _absolute_paths(args) -> None:
         raise ParameterError(f"`cache` and `results` must be folder paths, got {args.cache!r} and {args.results!r}")
     args.cache = str(Path(args.cache).absolute())
     args.results = str(Path(args.results).absolute())
+    for name, value in (("cache", args.cache), ("results", args.results)):
+        if Path(value).exists() and not Path(value).is_dir():
+            raise ParameterError(f"`{name}` must be a folder, got {name}={value!r} (a file)")
+    from .cache import sweep_leftovers
+
+    # What runs interrupted before this one left half-written (removed unless still running).
+    sweep_leftovers(args.results, *(Path(args.cache) / d for d in ("micro", "rays", "summary", "camera")))
 
 
 @contextlib.contextmanager
@@ -535,6 +543,82 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _add_cache(sub):
+    p = sub.add_parser(
+        "cache", help="list, verify or clean the cache of studies and the camera",
+        description="Every cache entry (wood chunk store, ray shard, summary, camera image) is named by "
+                    "the key of what produced it and carries a digest of its content. `ls` lists them with "
+                    "their size and provenance, `verify` checks every one (exit 1 if any is damaged; a "
+                    "study recomputes damaged entries by itself), `gc` removes what the given study and "
+                    "camera files do not use, and what interrupted runs left. Examples: "
+                    "`twray cache ls`; `twray cache verify --remove`; "
+                    "`twray cache gc studies/table1/*.yaml --scale paper --dry-run`.")
+    p.add_argument("action", choices=("ls", "verify", "gc"))
+    p.add_argument("files", nargs="*", metavar="FILE.yaml",
+                   help="gc: the study and camera files whose entries are kept (default: every .yaml under "
+                        "studies/)")
+    p.add_argument("--cache", default="results/cache", help="cache directory (default results/cache)")
+    p.add_argument("--scale", action="append", default=None,
+                   help="gc: scale whose entries are kept, repeatable (default: paper and small)")
+    p.add_argument("--dry-run", action="store_true", help="gc: list what would be removed, remove nothing")
+    p.add_argument("--remove", action="store_true", help="verify: also remove the damaged entries")
+    p.add_argument("--json", action="store_true", help="ls: one JSON object per line")
+    p.set_defaults(func=cmd_cache)
+
+
+def cmd_cache(args) -> int:
+    import json
+
+    from . import inventory
+
+    cache = Path(args.cache)
+    if args.action != "gc" and (args.files or args.scale or args.dry_run):
+        raise ParameterError(f"`{args.action}` takes no study files, --scale or --dry-run (those are gc's)")
+    if not cache.is_dir():
+        raise ParameterError(f"`cache` must be an existing folder, got cache={str(cache)!r}")
+    entries = inventory.scan(cache)
+    if args.action == "ls":
+        for e in entries:
+            if args.json:
+                print(json.dumps({"stage": e.stage, "key": e.key, "bytes": e.size, "path": str(e.path),
+                                  "about": e.about}))
+            else:
+                print(f"{e.stage:8s} {e.key or '-':24s} {inventory.human(e.size):>9s}  {e.about or e.path.name}")
+        total = sum(e.size for e in entries)
+        print(f"{len(entries)} entries, {inventory.human(total)} in {cache}", file=sys.stderr)
+        return 0
+    if args.action == "verify":
+        damaged = 0
+        for e in entries:
+            for path, why in inventory.verify(e):
+                print(f"{path}: {why}")
+                damaged += 1
+                if args.remove:
+                    inventory.remove(path)
+        print(f"{len(entries)} entries verified, {damaged} damaged"
+              f"{' (removed)' if args.remove and damaged else ''}", file=sys.stderr)
+        return 1 if damaged else 0
+    files = args.files or sorted(str(f) for f in Path("studies").rglob("*.yaml"))
+    if not files:
+        raise ParameterError("`files` must name the study and camera files whose entries to keep "
+                             "(no studies/ folder here)")
+    scales = args.scale or ["paper", "small"]
+    keep = inventory.keys_in_use(files, scales, cache)
+    # Only twray's own entries are removed: anything else found there is named and left.
+    for e in entries:
+        if e.stage == "unknown":
+            print(f"left alone {e.path} (not a twray cache entry)")
+    drop = [e for e in entries if e.stage == "leftover" or (e.stage in inventory.STAGES and e.key not in keep)]
+    for e in drop:
+        print(f"{'would remove' if args.dry_run else 'removed'} {e.path} ({inventory.human(e.size)})")
+        if not args.dry_run:
+            inventory.remove(e.path)
+    kept = len(entries) - len(drop)
+    print(f"{len(drop)} entries ({inventory.human(sum(e.size for e in drop))}) "
+          f"{'to remove' if args.dry_run else 'removed'}, {kept} kept", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="twray", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"twray {__version__}")
@@ -543,6 +627,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_trace(sub)
     _add_study(sub)
     _add_camera(sub)
+    _add_cache(sub)
     p = sub.add_parser("slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
     p.add_argument("volume")
     p.add_argument("--out", required=True, help="output directory")
@@ -557,7 +642,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Log records as ``twray: warning: ...`` lines on the current ``sys.stderr``."""
+
+    def __init__(self):
+        super().__init__()
+        self.setFormatter(logging.Formatter("twray: %(levelname)s: %(message)s"))
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _):
+        pass
+
+    def format(self, record):
+        record = logging.makeLogRecord({**record.__dict__, "levelname": record.levelname.lower()})
+        return super().format(record)
+
+
+def _log_to_stderr() -> None:
+    """twray's warnings (a damaged cache entry recomputed, ...) on stderr, one line each."""
+    logger = logging.getLogger("twray")
+    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
+        logger.addHandler(_StderrHandler())
+        logger.propagate = False
+    logger.setLevel(logging.INFO)
+
+
 def main(argv: list[str] | None = None) -> int:
+    _log_to_stderr()
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)

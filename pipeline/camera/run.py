@@ -7,7 +7,8 @@ the same content-addressed chunk store as the studies'
 only the chunks that camera rays visit are generated, once, and a sheet of
 the Table 1 base wood reuses the chunks the studies made.  A finished image
 is a cache entry ``cache/camera/<key>.npz`` whose key hashes the camera, the
-sheet, the object raster and the trace settings; a rerun renders nothing.
+sheet, the object raster and the trace settings, verified when read
+(:mod:`pipeline.cache`); a rerun renders nothing.
 
 Outputs under ``results/camera/``: ``<file>.zarr`` (an xarray Dataset of the
 images, their ideal thin-lens images and lost-sample counts),
@@ -26,12 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..study.run import _atomic_write, cache_key, publish_dataset, wood_record, wood_store
+from ..cache import DamagedEntry, atomic_write, cache_key, check_npz, read_npz, sound, write_npz
+from ..study.run import publish_dataset, wood_record, wood_store
 from ..optics.tracer import TRACER_VERSION, traced_voxel_um
 from .lens import RowsImage, ideal_image, render_rows
 from .scene import CameraStudy, ImageConfig
 
-VERSION = "1"
+VERSION = "2"  # 2: entries verified (key and digest)
 ROWS_PER_TASK = 3
 
 
@@ -61,7 +63,7 @@ def plan_camera(study: CameraStudy, cache_dir) -> list[Entry]:
     for cfg in study.images:
         key = cache_key(image_record(cfg))
         path = Path(cache_dir) / "camera" / f"{key}.npz"
-        out.append(Entry(cfg, key, path, path.exists()))
+        out.append(Entry(cfg, key, path, sound(check_npz, path, key)))
     return out
 
 
@@ -90,12 +92,7 @@ def assemble(cfg: ImageConfig, path: str, *blocks: RowsImage) -> dict:
     arrays = {"image": image, "lost": lost,
               "interfaces_per_ray": np.float64(sum(b.interfaces for b in blocks) / rays),
               "chunks_loaded": np.int64(sum(b.chunks_loaded for b in blocks))}
-
-    def write(tmp):
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-
-    _atomic_write(Path(path), write)
+    write_npz(Path(path), image_record(cfg), arrays)
     return {"rays": rays, "chunks_loaded": int(arrays["chunks_loaded"])}
 
 
@@ -132,8 +129,10 @@ def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROW
 
 # ---------------------------------------------------------------------- outputs
 def load_entry(e: Entry) -> dict:
-    with np.load(e.path) as z:
-        return {k: z[k] for k in z.files}
+    arrays = read_npz(e.path, e.key)
+    if arrays is None:
+        raise DamagedEntry(f"cache entry {e.path} was damaged during the run; run again to recompute it")
+    return arrays
 
 
 def edge_widths(image: np.ndarray, pixel_um: float, *, low: float = 0.25, high: float = 0.75) -> dict:
@@ -164,7 +163,7 @@ def _png(path: Path, array: np.ndarray) -> None:
     def write(tmp):
         Image.fromarray(np.round(np.clip(array, 0, 1) * 255).astype(np.uint8), mode="L").save(tmp, "PNG")
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
 
 
 def _figure(study: CameraStudy, images: list, path: Path) -> None:
@@ -194,7 +193,7 @@ def _figure(study: CameraStudy, images: list, path: Path) -> None:
     def write(tmp):
         fig.savefig(tmp, dpi=150, format="png")
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
     plt.close(fig)
 
 

@@ -37,7 +37,8 @@ import zarr
 from .. import __version__
 from ..params import Grid, WoodParams
 from .model import generate_block
-from .volume import ARRAY, AXES, NOT_GENERATED, ChunkFiles, _ome_attrs, staged_path
+from .volume import (ARRAY, AXES, DIGEST_SCHEME, NOT_GENERATED, ChunkFiles, _declares_digests, _ome_attrs,
+                     chunk_identity, staged_path)
 
 OFFSET = 160  # chunks held on disk on each side of the origin along R and L
 T_CHUNKS = 256  # chunks held on disk along T (8 mm with 64-voxel chunks of 0.5 µm)
@@ -132,12 +133,20 @@ class WoodChunkStore:
         if not (self.path / ARRAY / "zarr.json").exists():
             self._create()
         self._array = zarr.open_array(self.path / ARRAY, mode="r+")
-        self._files = ChunkFiles.of(self._array, self.path / ARRAY)
+        identity = None
+        if _declares_digests(self.path):
+            grid = Grid(self._array.shape, self.voxel_um, self._disk_origin())
+            identity = chunk_identity(self.params, self.seed, grid, self.chunks)
+        self._files = ChunkFiles.of(self._array, self.path / ARRAY, identity)
+
+    def _disk_origin(self) -> tuple:
+        cR, _, cL = self.chunks
+        return (-OFFSET * cR * self.voxel_um, 0.0, -OFFSET * cL * self.voxel_um)
 
     def _create(self) -> None:
         cR, cT, cL = self.chunks
         shape = (2 * OFFSET * cR, T_CHUNKS * cT, 2 * OFFSET * cL)
-        origin = (-OFFSET * cR * self.voxel_um, 0.0, -OFFSET * cL * self.voxel_um)
+        origin = self._disk_origin()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         staged = staged_path(self.path)
         try:
@@ -148,6 +157,7 @@ class WoodChunkStore:
                 "voxel_um": self.voxel_um, "origin_um": list(origin),
                 "params": self.params.to_dict(),
                 "phase": "1 = cell wall, 0 = polymer; 255 = chunk not generated yet",
+                "chunk_digest": DIGEST_SCHEME,
             }
             group.create_array(ARRAY, shape=shape, chunks=self.chunks, dtype="uint8",
                                fill_value=NOT_GENERATED, dimension_names=list(AXES))

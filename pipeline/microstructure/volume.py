@@ -9,12 +9,16 @@ once.  Chunks never written read as the sentinel :data:`NOT_GENERATED`.
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import hashlib
 import itertools
 import json
+import logging
 import math
 import os
 import shutil
-import uuid
+import struct
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -24,12 +28,16 @@ import zarr
 from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
+from ..cache import temp_name
 from ..params import Grid, ParameterError, WoodParams, validate
 from .model import generate_block
 
 ARRAY = "0"
 NOT_GENERATED = 255
 AXES = ("r", "t", "l")
+PUBLISH_TRIES = 50
+
+log = logging.getLogger("twray.cache")
 
 
 def _ome_attrs(grid: Grid, name: str) -> dict:
@@ -50,6 +58,22 @@ def _ome_attrs(grid: Grid, name: str) -> dict:
     }
 
 
+# Each chunk file twray writes ends with a Zstandard skippable frame (which every
+# decoder, zarr's included, passes over) holding a digest of the chunk's index, of
+# the wood it belongs to and of the compressed chunk: a flipped byte, a truncated
+# file or a chunk file copied from another index or another wood fails it.
+DIGEST_SCHEME = "blake2b-128 of (wood identity, chunk index, zstd frame) in a trailing zstd skippable frame"
+_DIGEST_HEADER = struct.pack("<II", 0x184D2A5E, 16)
+_TRAILER = len(_DIGEST_HEADER) + 16
+
+
+def chunk_identity(params: WoodParams, seed: int, grid: Grid, chunks) -> bytes:
+    """What every chunk of a wood array depends on besides its index."""
+    record = {"params": params.to_dict(), "seed": int(seed), "voxel_um": grid.voxel_um,
+              "origin_um": list(grid.origin_um), "shape": list(grid.shape), "chunks": list(chunks)}
+    return hashlib.blake2b(json.dumps(record, sort_keys=True).encode(), digest_size=16).digest()
+
+
 class ChunkFiles:
     """The chunk files of a uint8 Zarr v3 array, read and written directly.
 
@@ -60,15 +84,20 @@ class ChunkFiles:
     asynchronous machinery a 64³ chunk cost 3.3 ms of CPU to write against
     0.2 ms this way, and a 128³ one about 20 ms.  Files hold the whole chunk
     shape, the part beyond the array's edge filled (as zarr does).
+
+    With an ``identity`` (:func:`chunk_identity`) every file carries a digest
+    (:data:`DIGEST_SCHEME`): a file that fails it, or no longer decodes, is
+    logged and read as not generated, so that it is generated again.
     """
 
-    def __init__(self, root: Path, chunks: tuple, codec):
+    def __init__(self, root: Path, chunks: tuple, codec, identity: bytes | None = None):
         self.root = Path(root)
         self.chunks = tuple(chunks)
         self.codec = codec
+        self.identity = identity
 
     @classmethod
-    def of(cls, array: zarr.Array, root: Path) -> "ChunkFiles | None":
+    def of(cls, array: zarr.Array, root: Path, identity: bytes | None = None) -> "ChunkFiles | None":
         meta = array.metadata
         codecs = getattr(meta, "codecs", ())
         key_encoding = getattr(meta, "chunk_key_encoding", None)
@@ -76,18 +105,43 @@ class ChunkFiles:
                 or not isinstance(codecs[1], ZstdCodec) or getattr(key_encoding, "name", None) != "default"
                 or getattr(key_encoding, "separator", None) != "/"):
             return None
-        return cls(root, array.chunks, numcodecs.Zstd(level=codecs[1].level, checksum=codecs[1].checksum))
+        return cls(root, array.chunks, numcodecs.Zstd(level=codecs[1].level, checksum=codecs[1].checksum),
+                   identity)
 
     def path(self, d) -> Path:
         return self.root / "c" / str(d[0]) / str(d[1]) / str(d[2])
 
-    def read(self, d) -> np.ndarray | None:
-        """Chunk ``d`` (shape ``chunks``), or None when it has no file."""
+    def _digest(self, d, frame: bytes) -> bytes:
+        h = hashlib.blake2b(self.identity, digest_size=16)
+        h.update(struct.pack("<3q", *d))
+        h.update(frame)
+        return h.digest()
+
+    def check(self, d) -> tuple[np.ndarray | None, str | None]:
+        """(chunk, None) if chunk ``d`` is sound, (None, what is wrong) if damaged, (None, None)
+        if it has no file."""
         try:
             raw = self.path(d).read_bytes()
         except FileNotFoundError:
-            return None
-        return np.frombuffer(self.codec.decode(raw), np.uint8).reshape(self.chunks)
+            return None, None
+        if self.identity is not None:
+            frame, trailer = raw[:-_TRAILER], raw[-_TRAILER:]
+            if len(raw) <= _TRAILER or trailer[:len(_DIGEST_HEADER)] != _DIGEST_HEADER:
+                return None, "no digest"
+            if trailer[len(_DIGEST_HEADER):] != self._digest(d, frame):
+                return None, "content does not match its digest"
+            raw = frame
+        try:
+            return np.frombuffer(self.codec.decode(raw), np.uint8).reshape(self.chunks), None
+        except (RuntimeError, ValueError, TypeError) as exc:
+            return None, f"does not decode: {type(exc).__name__}"
+
+    def read(self, d) -> np.ndarray | None:
+        """Chunk ``d`` (shape ``chunks``), or None when it has no file or a damaged one (logged)."""
+        data, why = self.check(d)
+        if why:
+            log.warning("wood chunk %s is damaged (%s): generating it again", self.path(d), why)
+        return data
 
     def write(self, d, data: np.ndarray) -> None:
         """Store chunk ``d`` atomically (a temporary file renamed into place); ``data`` may
@@ -96,11 +150,14 @@ class ChunkFiles:
             full = np.full(self.chunks, NOT_GENERATED, np.uint8)
             full[tuple(slice(0, n) for n in data.shape)] = data
             data = full
+        raw = bytes(self.codec.encode(np.ascontiguousarray(data)))
+        if self.identity is not None:
+            raw += _DIGEST_HEADER + self._digest(d, raw)
         path = self.path(d)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}")
+        tmp = temp_name(path, "tmp")
         try:
-            tmp.write_bytes(self.codec.encode(np.ascontiguousarray(data)))
+            tmp.write_bytes(raw)
             os.replace(tmp, path)
         except BaseException:
             tmp.unlink(missing_ok=True)
@@ -120,7 +177,9 @@ class WoodVolume:
         self.grid = grid
         self.seed = int(seed)
         self._array = zarr.open_array(self.path / ARRAY, mode="r+")
-        self._files = ChunkFiles.of(self._array, self.path / ARRAY)
+        identity = (chunk_identity(params, self.seed, grid, self._array.chunks)
+                    if _declares_digests(self.path) else None)
+        self._files = ChunkFiles.of(self._array, self.path / ARRAY, identity)
 
     # ------------------------------------------------------------------ create/open
     @classmethod
@@ -153,6 +212,7 @@ class WoodVolume:
             "origin_um": list(grid.origin_um),
             "params": params.to_dict(),
             "phase": "1 = cell wall, 0 = polymer; 255 = chunk not generated yet",
+            "chunk_digest": DIGEST_SCHEME,
         }
         group.create_array(
             ARRAY, shape=grid.shape, chunks=chunks, dtype="uint8",
@@ -322,9 +382,20 @@ def _generate_chunks(path: str, chunk_indices) -> int:
     return len(chunk_indices)
 
 
+def _declares_digests(path: Path) -> bool:
+    """Whether the wood store at ``path`` was written with chunk digests (twray 0.x stores
+    made before them have none, and are read as they are)."""
+    try:
+        attrs = json.loads((Path(path) / "zarr.json").read_text()).get("attributes", {})
+        return attrs["twray"].get("chunk_digest") == DIGEST_SCHEME
+    except (OSError, ValueError, KeyError, AttributeError, TypeError):
+        return False
+
+
 def staged_path(out: Path) -> Path:
-    """A sibling path to build ``out`` in, so that a failure leaves nothing at ``out``."""
-    return out.with_name(f".{out.name}.partial-{uuid.uuid4().hex[:8]}")
+    """A sibling path to build ``out`` in, so that a failure leaves nothing at ``out``
+    (removed by a later run if this one is interrupted, see :func:`pipeline.cache.sweep_leftovers`)."""
+    return temp_name(out, "partial")
 
 
 def written_by_twray(path: Path) -> bool:
@@ -349,7 +420,8 @@ def check_replaceable(out: Path, overwrite: bool) -> None:
     if out.exists() or out.is_symlink():
         if not overwrite:
             raise ParameterError(f"`out` must not exist already (use --overwrite), got {str(out)!r}")
-        if not written_by_twray(out):
+        # (a store another run is replacing this moment may be missing for an instant)
+        if not any(written_by_twray(out) or not (out.exists() or out.is_symlink()) for _ in range(3)):
             raise ParameterError(f"`out` exists and is not a store twray wrote: --overwrite replaces only "
                                  f"those, got {str(out)!r}")
 
@@ -359,19 +431,36 @@ def publish(staged: Path, out: Path, overwrite: bool) -> None:
 
     An existing ``out`` (only a store twray wrote, with ``overwrite``) is first renamed
     aside, so that ``out`` holds at every moment either the old store or the new one.
+    Runs publishing to one ``out`` at once each succeed; the last one's store stays.
     """
     check_replaceable(out, overwrite)
-    if not out.exists():
-        os.replace(staged, out)
+    taken = (errno.ENOTEMPTY, errno.EEXIST)  # ``out`` is there: another run's or the old store
+    for _ in range(PUBLISH_TRIES):
+        try:
+            os.rename(staged, out)
+            return
+        except OSError as exc:
+            if exc.errno not in taken:
+                raise
+        if not overwrite:
+            check_replaceable(out, overwrite)  # another run wrote it meanwhile: refused
+        old = temp_name(out, "old")
+        try:
+            os.rename(out, old)
+        except FileNotFoundError:
+            continue  # another run moved it aside first
+        try:
+            os.rename(staged, out)
+        except OSError as exc:
+            if exc.errno in taken:
+                shutil.rmtree(old, ignore_errors=True)  # another run's store came in between:
+                continue  # replace it in turn
+            with contextlib.suppress(OSError):
+                os.rename(old, out)
+            raise
+        shutil.rmtree(old, ignore_errors=True)
         return
-    old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
-    os.replace(out, old)
-    try:
-        os.replace(staged, out)
-    except BaseException:
-        os.replace(old, out)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
+    raise OSError(f"could not publish {out}: other runs kept replacing it")
 
 
 def describe(path: str | Path) -> str:

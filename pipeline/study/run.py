@@ -18,48 +18,36 @@ what it depends on plus the stage's version:
     counts, as JSON.
 
 Every entry is written to a temporary name and renamed into place, so a
-crash leaves whole entries or none; the study Dataset is built from the
-entries and published the same way.
+crash leaves whole entries or none, and is verified when it is read: it
+carries the key it was computed for and a digest of its content
+(:mod:`pipeline.cache`; wood chunks carry theirs in the chunk file), and a
+damaged entry is logged and computed again.  The study Dataset is built from
+the entries and published the same way, with a digest of its values that is
+checked before a rerun keeps it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
-import os
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
+from ..cache import (DamagedEntry, cache_key, check_json, check_npz, dataset_digest, log, read_json, read_npz,
+                     sound, write_json, write_npz)
 from ..microstructure.store import WoodChunkStore
 from ..optics.tracer import TRACER_VERSION
 from .spec import Scene, Study, scene_record
 
-VERSIONS = {"micro": "1", "rays": "1", "summary": "1"}
+# Version 2 of each stage: entries verified (key and digest of the content).
+VERSIONS = {"micro": "2", "rays": "2", "summary": "2"}
 CHUNKS = (64, 64, 64)
 N_BOOT = 200
 COLUMN_BATCH = 16  # chunks per microstructure task
-
-
-def cache_key(record: dict) -> str:
-    text = json.dumps(record, sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()[:24]
-
-
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 @dataclass
@@ -80,6 +68,7 @@ class Shard:
     hi: int
     micro: str
     cached: bool
+    record: dict = field(default_factory=dict)  # what the key hashes (provenance)
 
 
 @dataclass
@@ -89,6 +78,7 @@ class Summary:
     scene_index: int
     shards: list
     cached: bool
+    record: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -180,14 +170,18 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
         keys = []
         for lo in range(0, scene.rays, shard_rays):
             hi = min(lo + shard_rays, scene.rays)
-            key = cache_key({**base, "range": [lo, hi]})
+            record = {**base, "range": [lo, hi]}
+            key = cache_key(record)
             path = cache_dir / "rays" / f"{key}.npz"
-            shards.append(Shard(key, path, i, lo, hi, mkey, path.exists()))
+            shards.append(Shard(key, path, i, lo, hi, mkey, sound(check_npz, path, key), record))
             keys.append(key)
-        skey = cache_key({"stage": "summary", "version": VERSIONS["summary"], "rays": keys,
-                          "n_boot": N_BOOT, "seed": scene.seed})
+        srecord = {"stage": "summary", "version": VERSIONS["summary"], "rays": keys, "n_boot": N_BOOT,
+                   "seed": scene.seed}
+        skey = cache_key(srecord)
         spath = cache_dir / "summary" / f"{skey}.json"
-        summaries.append(Summary(skey, spath, i, keys, spath.exists()))
+        # A summary is reused with every shard of it sound (the Dataset reads the rays too).
+        cached = sound(check_json, spath, skey) and all(s.cached for s in shards if s.scene_index == i)
+        summaries.append(Summary(skey, spath, i, keys, cached, srecord))
     for m in micros.values():
         needed = any(not s.cached for s in shards if s.micro == m.key)
         if needed:
@@ -219,8 +213,9 @@ def generate_chunks(m: Micro, chunks: list) -> int:
     return store.generated
 
 
-def trace_shard(m: Micro, scene: Scene, shard: Shard, *_after) -> str:
-    """Trace rays ``[lo, hi)`` of the scene's beam and store them (an .npz)."""
+def trace_shard(m: Micro, scene: Scene, shard: Shard, *_after) -> int:
+    """Trace rays ``[lo, hi)`` of the scene's beam and store them (an .npz); returns the
+    wood chunks it generated."""
     from ..optics.sources import WoodSource
     from ..optics.tracer import Beam, square_beam, trace_beam
 
@@ -234,35 +229,35 @@ def trace_shard(m: Micro, scene: Scene, shard: Shard, *_after) -> str:
     arrays = {"position": r.position, "direction": r.direction, "exit_direction": r.exit_direction,
               "status": r.status, "events": r.events, "path": r.path, "fallbacks": r.fallbacks,
               "chunks_generated": np.int64(store.generated)}
-
-    def write(tmp):
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-
-    _atomic_write(shard.path, write)
-    return str(shard.path), store.generated
+    write_npz(shard.path, shard.record, arrays)
+    return store.generated
 
 
-def load_rays(paths, settings):
-    """Concatenate stored shards into one RayResult."""
+def load_rays(shards, settings):
+    """Concatenate stored shards (:class:`Shard` entries) into one RayResult."""
     from ..optics.tracer import RayResult
 
-    parts = [dict(np.load(p)) for p in paths]
+    parts = []
+    for s in shards:
+        arrays = read_npz(s.path, s.key)
+        if arrays is None:
+            raise DamagedEntry(f"cache entry {s.path} was damaged during the run; run again to recompute it")
+        parts.append(arrays)
     cat = {k: np.concatenate([p[k] for p in parts]) for k in
            ("position", "direction", "exit_direction", "status", "events", "path", "fallbacks")}
     return RayResult(**cat, settings=settings), int(sum(p["chunks_generated"] for p in parts))
 
 
-def summarize_scene(scene: Scene, summ: Summary, shards: list) -> dict:
-    """Reduce a scene's shards (cached paths, or (path, chunks generated) just traced)."""
+def summarize_scene(scene: Scene, summ: Summary, shards: list, *traced) -> dict:
+    """Reduce a scene's shards (read back from the cache once ``traced``, the chunks
+    generated by each shard traced now, are in)."""
     from ..analysis import summarize
 
-    paths = [s if isinstance(s, str) else s[0] for s in shards]
-    result, generated = load_rays(paths, scene.settings)
+    result, generated = load_rays(shards, scene.settings)
     out = summarize(result, n_boot=N_BOOT, seed=scene.seed)
     out["chunks_generated"] = generated
-    _atomic_write(summ.path, lambda tmp: tmp.write_text(json.dumps(out)))
-    return {"summary": out, "chunks_generated": sum(s[1] for s in shards if not isinstance(s, str))}
+    write_json(summ.path, summ.record, out)
+    return {"summary": out, "chunks_generated": int(sum(traced))}
 
 
 # ---------------------------------------------------------------------- graph
@@ -307,17 +302,16 @@ def build_graph(plans: list[Plan]) -> Graph:
             if summ.cached:
                 continue
             scene = constant(plan.study.scenes[summ.scene_index], f"scene-{summ.key[:12]}")
-            inputs = []
+            traced = []
             for shard in plan.shards_of(summ):
-                if shard.cached:
-                    inputs.append(str(shard.path))
-                else:
+                if not shard.cached:
                     n_trace += 1
-                    inputs.append(dask.delayed(trace_shard, pure=False)(
+                    traced.append(dask.delayed(trace_shard, pure=False)(
                         micro_args[shard.micro], scene, constant(shard, f"shard-{shard.key[:12]}"),
                         *micro_tasks[shard.micro], dask_key_name=f"rays-{shard.key[:12]}"))
+            shards = constant(plan.shards_of(summ), f"shards-{summ.key[:12]}")
             summaries.append(dask.delayed(summarize_scene, pure=False)(
-                scene, constant(summ, f"summ-{summ.key[:12]}"), inputs,
+                scene, constant(summ, f"summ-{summ.key[:12]}"), shards, *traced,
                 dask_key_name=f"summary-{summ.key[:12]}"))
     micro = [t for ts in micro_tasks.values() for t in ts]
     return Graph(micro, summaries, n_trace)
@@ -365,8 +359,14 @@ def compute(plans: list[Plan], client, *, progress: bool = False) -> dict:
 def summary_rows(plan: Plan) -> list[dict]:
     """The cached summary of each value, with the value, in the study's order."""
     coord = plan.study.coordinate()
-    return [{"value": coord[summ.scene_index], **json.loads(summ.path.read_text())}
-            for summ in plan.summaries]
+    return [{"value": coord[summ.scene_index], **_summary(summ)} for summ in plan.summaries]
+
+
+def _summary(summ: Summary) -> dict:
+    value = read_json(summ.path, summ.key)
+    if value is None:
+        raise DamagedEntry(f"cache entry {summ.path} was damaged during the run; run again to recompute it")
+    return value
 
 
 def report_table(plans: list[Plan]) -> str:
@@ -400,9 +400,8 @@ def study_dataset(plan: Plan):
     rows = []
     for summ in plan.summaries:
         scene = st.scenes[summ.scene_index]
-        paths = [s.path for s in plan.shards_of(summ)]
-        result, _ = load_rays(paths, scene.settings)
-        rows.append((json.loads(summ.path.read_text()), result))
+        result, _ = load_rays(plan.shards_of(summ), scene.settings)
+        rows.append((_summary(summ), result))
     codes = sorted(STATUS_NAMES)
     per_scene = {  # name: (value of a summary, long_name, units)
         "FWHM_R": (lambda s: s["fwhm_r_deg"], "FWHM of the Lorentz fit to theta_R", "degree"),
@@ -460,26 +459,37 @@ def _provenance(plan: Plan) -> dict:
             "cache_keys": json.dumps(plan.keys()), "source": f"twray {__version__}"}
 
 
+DIGEST_ATTR = "twray_digest"
+
+
 def _is_current(out: Path, provenance: dict) -> bool:
-    """Whether the Dataset at ``out`` carries exactly these provenance attributes."""
-    import zarr
+    """Whether the Dataset at ``out`` carries exactly these provenance attributes and its
+    values still match the digest recorded when it was written."""
+    import xarray as xr
 
     try:
-        attrs = dict(zarr.open_group(out, mode="r").attrs)
-    except Exception:
+        with xr.open_zarr(out, consolidated=False) as ds:
+            attrs = dict(ds.attrs)
+            if not all(attrs.get(k) == v for k, v in provenance.items()):
+                return False
+            current = attrs.get(DIGEST_ATTR) == dataset_digest(ds.load())
+    except Exception:  # noqa: BLE001 - anything unreadable is rebuilt
         return False
-    return all(attrs.get(k) == v for k, v in provenance.items())
+    if not current:
+        log.warning("result %s is damaged (its values do not match their digest): writing it again", out)
+    return current
 
 
 def dataset_is_current(plan: Plan, out: Path) -> bool:
-    """Whether ``out`` was built from exactly this study and these cache entries."""
+    """Whether ``out`` was built from exactly this study and these cache entries, undamaged."""
     return _is_current(out, _provenance(plan))
 
 
 def publish_dataset(build, out: Path, provenance: dict) -> Path:
     """Write the Dataset ``build()`` to ``out`` (built aside, then renamed into place).
 
-    An existing Dataset whose attributes include ``provenance`` is kept.
+    An existing Dataset whose attributes include ``provenance`` and whose values
+    match their digest is kept.
     """
     from ..microstructure.volume import publish, staged_path
 
@@ -489,6 +499,7 @@ def publish_dataset(build, out: Path, provenance: dict) -> Path:
     staged = staged_path(out)
     ds = build()
     ds.attrs.update(provenance)
+    ds.attrs[DIGEST_ATTR] = dataset_digest(ds)
     try:
         ds.to_zarr(staged, mode="w", zarr_format=3, consolidated=False)
         publish(staged, out, overwrite=True)

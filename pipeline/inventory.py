@@ -1,0 +1,196 @@
+"""What a cache folder holds: list its entries, verify them, remove what nothing uses.
+
+The cache (``results/cache`` by default) has one folder per stage:
+``micro/<key>.zarr`` (wood chunk stores), ``rays/<key>.npz``,
+``summary/<key>.json`` and ``camera/<key>.npz``.  Every entry is named by
+the key of what produced it and can say what that was (its record,
+:func:`pipeline.cache.entry_record`; a wood store's attributes).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .cache import cache_key, check_json, check_npz, entry_record, is_leftover
+
+STAGES = {"micro": ".zarr", "rays": ".npz", "summary": ".json", "camera": ".npz"}
+
+
+@dataclass
+class Entry:
+    stage: str  # a key of STAGES, or "leftover" (an interrupted run's), or "unknown"
+    path: Path
+    size: int
+    key: str = ""
+    about: str = ""
+    problems: list = field(default_factory=list)
+
+
+def _size(path: Path) -> int:
+    if path.is_dir() and not path.is_symlink():
+        return sum(f.stat().st_size for f in path.rglob("*") if f.is_file() and not f.is_symlink())
+    return path.lstat().st_size
+
+
+def _wood_meta(path: Path) -> dict | None:
+    try:
+        return json.loads((path / "zarr.json").read_text())["attributes"]["twray"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _about(stage: str, path: Path) -> str:
+    """One line of provenance."""
+    if stage == "micro":
+        meta = _wood_meta(path)
+        if meta is None:
+            return "not a wood store"
+        n = sum(1 for _ in (path / "0" / "c").rglob("*") if _.is_file() and _.name.isdigit()) \
+            if (path / "0" / "c").is_dir() else 0
+        p = meta.get("params", {})
+        return (f"{p.get('species', '?')} wood, seed {meta.get('seed')}, {meta.get('voxel_um')} um voxels, "
+                f"{n} chunks, twray {meta.get('version')}")
+    record = entry_record(path)
+    if not isinstance(record, dict):
+        return "no record"
+    if stage == "rays":
+        s = record.get("settings", {})
+        lo, hi = record.get("range", ["?", "?"])
+        return (f"rays {lo}-{hi} of wood {str(record.get('micro'))[:8]}, {s.get('method')}, "
+                f"n_wall {record.get('n_wall')}, {record.get('thickness_vox')} voxels thick, "
+                f"tracer {record.get('tracer')}")
+    if stage == "summary":
+        return f"summary of {len(record.get('rays', []))} ray shards, {record.get('n_boot')} bootstrap draws"
+    if stage == "camera":
+        cam = record.get("camera", {})
+        return f"image {cam.get('pixels')} px, {'with' if record.get('sheet') else 'without'} sheet, " \
+               f"tracer {record.get('tracer')}"
+    return ""
+
+
+def scan(cache) -> list[Entry]:
+    """Every entry of ``cache`` (and what interrupted runs left there)."""
+    cache = Path(cache)
+    out = []
+    for stage, suffix in STAGES.items():
+        folder = cache / stage
+        if not folder.is_dir():
+            continue
+        for p in sorted(folder.iterdir()):
+            if is_leftover(p):
+                out.append(Entry("leftover", p, _size(p)))
+            elif p.name.endswith(suffix) and not p.name.startswith("."):
+                out.append(Entry(stage, p, _size(p), p.name[: -len(suffix)], _about(stage, p)))
+            elif not p.name.startswith("."):  # a live run's temporary files are skipped
+                out.append(Entry("unknown", p, _size(p)))
+        if stage == "micro":  # chunk files an interrupted run was writing
+            for dirpath, dirs, files in os.walk(folder):
+                for name in files:
+                    p = Path(dirpath) / name
+                    if p.parent != folder and is_leftover(p):
+                        out.append(Entry("leftover", p, _size(p)))
+    return out
+
+
+def verify(entry: Entry) -> list[tuple[Path, str]]:
+    """What is wrong with ``entry``: (the damaged file or folder, why) pairs, none if it is sound.
+    A wood store's damaged chunks are named one by one (the rest of the store is sound)."""
+    if entry.stage == "leftover":
+        return [(entry.path, "left by an interrupted run")]
+    if entry.stage == "micro":
+        return _verify_wood(entry)
+    if entry.stage in ("rays", "camera"):
+        why = check_npz(entry.path, entry.key)[1]
+    elif entry.stage == "summary":
+        why = check_json(entry.path, entry.key)[1]
+    else:
+        return []
+    return [(entry.path, why)] if why else []
+
+
+def _verify_wood(entry: Entry) -> list[tuple[Path, str]]:
+    import zarr
+
+    from .microstructure.store import WoodChunkStore
+    from .microstructure.volume import ARRAY, _declares_digests
+    from .params import WoodParams, validate
+    from .study.run import VERSIONS
+
+    meta = _wood_meta(entry.path)
+    if meta is None:
+        return [(entry.path, "not a twray wood store")]
+    try:
+        chunks = tuple(zarr.open_array(entry.path / ARRAY, mode="r").chunks)
+    except Exception as exc:  # noqa: BLE001 - any failure to open is the finding
+        return [(entry.path, f"its array does not open: {type(exc).__name__}")]
+    record = {"stage": "micro", "version": VERSIONS["micro"], "wood": meta.get("params"),
+              "seed": meta.get("seed"), "voxel_um": meta.get("voxel_um"), "chunks": list(chunks)}
+    if cache_key(record) != entry.key:
+        return [(entry.path, "not the wood its key names (or made by an older twray)")]
+    if not _declares_digests(entry.path):
+        return [(entry.path, "its chunks carry no digests")]
+    p = dict(meta["params"])
+    if p.get("laminate") is not None:
+        p["laminate"] = tuple(p["laminate"])
+    store = WoodChunkStore(entry.path, validate(WoodParams(**p)), seed=meta["seed"], voxel_um=meta["voxel_um"],
+                           chunks=chunks)
+    problems = []
+    root = entry.path / ARRAY / "c"
+    for f in sorted(root.rglob("*")) if root.is_dir() else []:
+        if f.is_file() and f.name.isdigit():
+            d = tuple(int(x) for x in f.relative_to(root).parts)
+            why = store._files.check(d)[1]
+            if why:
+                problems.append((f, why))
+    return problems
+
+
+def remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def keys_in_use(files, scales, cache) -> set:
+    """The keys of every entry the study and camera files need at ``scales``."""
+    from .camera.run import plan_camera
+    from .camera.scene import load_camera
+    from .optics.tracer import traced_voxel_um
+    from .params import ParameterError
+    from .study.run import plan_study, wood_record
+    from .study.spec import load_study
+
+    keys = set()
+    for f in files:
+        for scale in scales:
+            try:
+                plan = plan_study(load_study(f, scale=scale), cache)
+            except ParameterError as study_error:
+                try:
+                    entries = plan_camera(load_camera(f, scale=scale), cache)
+                except ParameterError:
+                    raise study_error from None
+                for e in entries:
+                    keys.add(e.key)
+                    sh = e.config.sheet
+                    if sh is not None:
+                        keys.add(cache_key(wood_record(sh.wood, sh.seed,
+                                                       traced_voxel_um(sh.voxel_um, e.config.settings))))
+                continue
+            keys.update(plan.micros)
+            keys.update(s.key for s in plan.shards)
+            keys.update(s.key for s in plan.summaries)
+    return keys
+
+
+def human(n: int) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if n < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return str(n)
