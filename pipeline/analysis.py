@@ -28,8 +28,11 @@ def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
         g = np.exp(log_g)
         return -np.sum(np.log(g / np.pi) - np.log((x - loc) ** 2 + g * g))
 
-    res = optimize.minimize(nll, [med, np.log(scale0)], method="Nelder-Mead",
-                            options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 4000})
+    # More than half the angles equal (an index-matched or empty sample) drives γ to 0,
+    # where the likelihood is infinite: the fit ends there with γ ~ 0, as it should.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        res = optimize.minimize(nll, [med, np.log(scale0)], method="Nelder-Mead",
+                                options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 4000})
     return float(res.x[0]), float(np.exp(res.x[1]))
 
 

@@ -268,5 +268,5 @@ def entry_record(path: Path) -> dict | None:
         return None
 
 
-class DamagedEntry(RuntimeError):
+class DamagedEntry(OSError):
     """An entry that was sound when planned is damaged when read (changed during the run)."""

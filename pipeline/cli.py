@@ -13,15 +13,18 @@ import math
 import os
 import re
 import shutil
+import signal
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
 
-from . import __version__
+from . import __version__, limits
 from .params import ParameterError, build_params, make_grid, parse_set, parse_triple, preset_names
 
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130  # as a shell reports a process ended by Ctrl-C
 
 
 class _Parser(argparse.ArgumentParser):
@@ -34,6 +37,10 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message):  # one line, not the usage block
         raise ParameterError(f"{self.prog}: {message}")
+
+
+YES_HELP = ("run even if the estimate is above TWRAY_CONFIRM_CPU_HOURS (default 2 CPU-hours); what cannot "
+            "fit memory or disk is refused anyway")
 
 
 def _add_generate(sub):
@@ -54,6 +61,7 @@ def _add_generate(sub):
                    help="generate on a local dask.distributed cluster of N worker processes")
     p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_generate)
 
 
@@ -69,9 +77,12 @@ def _int(text: str, name: str, minimum: int) -> int:
 
 def _float(text: str, name: str) -> float:
     try:
-        return float(text)
+        value = float(text)
     except (TypeError, ValueError):
         raise ParameterError(f"`{name}` must be a number, got {name}={text!r}") from None
+    if not math.isfinite(value):
+        raise ParameterError(f"`{name}` must be a finite number, got {name}={text!r}")
+    return value
 
 
 CONNECT_TIMEOUT = "5s"  # a scheduler that does not answer by then is unreachable
@@ -116,8 +127,20 @@ def cmd_generate(args) -> int:
     seed = _int(args.seed, "seed", 0)
     workers = _int(args.workers, "workers", 1) if args.workers is not None else None
     grid = make_grid(size, _float(args.voxel_um, "voxel_um"), origin, params)
-    out = Path(args.out).absolute()  # workers of a remote scheduler have their own working folder
+    out = _out_path(args.out)
     check_replaceable(out, args.overwrite)
+    from .cache import sweep_leftovers
+
+    sweep_leftovers(out.parent)  # what generate runs interrupted before this one left
+    nvox = math.prod(grid.shape)
+    est = limits.Estimate(0.0, limits.BASE_MEMORY, 4096.0)
+    if not args.lazy:
+        est = limits.Estimate(nvox / limits.GENERATE_VOXELS_PER_CPU_S, limits.BASE_MEMORY,
+                              nvox * limits.DISK_BYTES_PER_VOXEL)
+    limits.check(est, what=f"`generate` of {nvox:.3g} voxels", yes=args.yes, disk_path=out.parent,
+                 fit="use --lazy to generate chunks only when they are read, or a smaller --size-um")
+    if est.cpu_s >= limits.SHOW_ESTIMATE_S:
+        print(f"twray generate: estimate {est.text()}", file=sys.stderr)
     out.parent.mkdir(parents=True, exist_ok=True)
     staged = staged_path(out)
     client = cluster = None
@@ -138,7 +161,6 @@ def cmd_generate(args) -> int:
         if cluster is not None:
             cluster.close()
     dt = time.perf_counter() - t0
-    nvox = grid.shape[0] * grid.shape[1] * grid.shape[2]
     msg = (f"{out}: {params.species}, shape {grid.shape} (R, T, L) at {grid.voxel_um:g} µm, "
            f"chunks {tuple(vol.chunks)}")
     if args.lazy:
@@ -181,6 +203,7 @@ def _add_trace(sub):
     p.add_argument("--seed", default="1")
     p.add_argument("--out", default=None, help="per-ray dataset (.nc or .zarr)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_trace)
 
 
@@ -194,7 +217,8 @@ def cmd_trace(args) -> int:
     voxel = _float(args.voxel_um, "voxel_um")
     if not voxel > 0:
         raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel:g}")
-    if args.out:
+    if args.out is not None:
+        args.out = str(_out_path(args.out))
         _check_rays_out(Path(args.out))
     dri = _float(args.delta_ri, "delta_ri")
     n_poly = _float(args.ri_polymer, "ri_polymer")
@@ -245,6 +269,7 @@ def cmd_trace(args) -> int:
     if settings.method == "paper" and wall_um is not None and settings.step_vox * voxel >= wall_um:
         raise ParameterError(f"`step_vox` must be smaller than the wall ({wall_um:g} µm = "
                              f"{wall_um / voxel:g} voxels), got step_vox={settings.step_vox:g}")
+    _check_trace_limits(args, rays, beam_um, voxel, settings, source, centre)
     incidence = _incidence(args.incidence_deg)
     direction = (math.tan(math.radians(incidence[0])), 1.0, math.tan(math.radians(incidence[1])))
     beam = square_beam(rays, beam_um / voxel, centre, seed=seed, direction=direction)
@@ -266,6 +291,25 @@ def cmd_trace(args) -> int:
               f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}°, "
               f"haze {100 * summary['haze']:.1f} %, {elapsed:.1f} s")
     return 0
+
+
+def _check_trace_limits(args, rays, beam_um, voxel, settings, source, centre) -> None:
+    """Refuse a beam that misses the volume or a trace that cannot fit (before any work)."""
+    width = beam_um / voxel
+    if args.volume:
+        nr, nt, nl = source.shape
+        if not (centre[0] - width / 2 >= 0 and centre[0] + width / 2 <= nr
+                and centre[1] - width / 2 >= 0 and centre[1] + width / 2 <= nl):
+            raise ParameterError(f"`beam_um` must fit the volume's R-L face ({nr * voxel:g} x {nl * voxel:g} µm) "
+                                 f"around the beam's centre, got beam_um={beam_um:g}")
+        thickness_um, pitch = nt * voxel, 14.5
+    else:
+        thickness_um, pitch = source.shape[1] * voxel, source.params.fibre_diameter_um
+    est = limits.trace_estimate(rays=rays, beam_um=beam_um, thickness_um=thickness_um, voxel_um=voxel,
+                                pitch_um=pitch, method=settings.method, wood=not args.volume)
+    limits.check(est, what=f"`trace` of {rays} rays", yes=args.yes,
+                 fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
+                     "or a thinner sample")
 
 
 def _incidence(text: str | None) -> tuple[float, float]:
@@ -330,6 +374,23 @@ def _write_rays(result, summary, voxel, out):
             staged.unlink()
 
 
+def _out_path(text: str, name: str = "out") -> Path:
+    """An output path, absolute (the workers of a remote scheduler have their own working
+    folder), whose folder exists or can be made and can be written (checked before any work)."""
+    if not text or not text.strip():
+        raise ParameterError(f"`{name}` must be a path, got {name}={text!r}")
+    out = Path(text).absolute()
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ParameterError(f"`{name}` must be under a folder, got {name}={text!r} ({parent} is a file)")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ParameterError(f"`{name}` must be in a folder you can write, got {name}={text!r} "
+                             f"({parent} is read-only)")
+    return out
+
+
 def _check_rays_out(out: Path) -> None:
     """A per-ray result replaces only an earlier twray result: never another folder or file."""
     from .microstructure.volume import check_replaceable
@@ -368,6 +429,7 @@ def _add_study(sub):
     p.add_argument("--shard-rays", default="250", help="rays per tracing task (default 250)")
     p.add_argument("--dry-run", action="store_true", help="list each stage as cached or to compute")
     p.add_argument("--report", default=None, help="also write a Markdown table of every study here")
+    p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_study)
 
 
@@ -405,17 +467,16 @@ def _study_client(args):
 def _absolute_paths(args) -> None:
     """The cache and results folders as absolute paths, resolved here on the client: the
     workers of a scheduler elsewhere have their own working folder."""
-    if not args.cache or not args.results:
-        raise ParameterError(f"`cache` and `results` must be folder paths, got {args.cache!r} and {args.results!r}")
-    args.cache = str(Path(args.cache).absolute())
-    args.results = str(Path(args.results).absolute())
-    for name, value in (("cache", args.cache), ("results", args.results)):
+    for name in ("cache", "results"):
+        value = str(_out_path(getattr(args, name), name))
         if Path(value).exists() and not Path(value).is_dir():
             raise ParameterError(f"`{name}` must be a folder, got {name}={value!r} (a file)")
+        setattr(args, name, value)
     from .cache import sweep_leftovers
 
     # What runs interrupted before this one left half-written (removed unless still running).
-    sweep_leftovers(args.results, *(Path(args.cache) / d for d in ("micro", "rays", "summary", "camera")))
+    sweep_leftovers(args.results, *(Path(args.cache) / d for d in ("rays", "summary", "camera")))
+    sweep_leftovers(Path(args.cache) / "micro", deep=True)  # chunk files too
 
 
 @contextlib.contextmanager
@@ -439,16 +500,30 @@ def cmd_study(args) -> int:
     if args.workers is not None:
         _int(args.workers, "workers", 1)
     _absolute_paths(args)
+    report = _out_path(args.report, "report") if args.report is not None else None
+    if report is not None and report.is_dir():
+        raise ParameterError(f"`report` must be a file path, got report={args.report!r} (a folder)")
     studies = [load_study(f, scale=args.scale) for f in args.files]
     names = [s.name for s in studies]
     if len(set(names)) != len(names):
         raise ParameterError(f"study files must have distinct names, got {names}")
+    # What could never fit is refused before planning (which lists the wood's chunks).
+    scenes = [sc for st in studies for sc in st.scenes]
+    fit = "use fewer rays, a narrower beam, larger voxels or a thinner sample"
+    est = limits.study_estimate(scenes, shard_rays=shard_rays)
+    limits.check(est, what="`study`", yes=True, disk_path=args.cache, fit=fit)
     t0 = time.perf_counter()
     plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
+    todo = [plan.study.scenes[summ.scene_index] for plan in plans for summ in plan.summaries if not summ.cached]
+    est = limits.study_estimate(todo, shard_rays=shard_rays)
+    if est.cpu_s >= limits.SHOW_ESTIMATE_S:
+        print(f"twray study: estimate for the {len(todo)} value{'' if len(todo) == 1 else 's'} to compute: "
+              f"{est.text()}", file=sys.stderr)
     if args.dry_run:
         for plan in plans:
             print("\n".join(describe_plan(plan)))
         return 0
+    limits.check(est, what="`study`", yes=args.yes, disk_path=args.cache, fit=fit)
     if not all(p.up_to_date for p in plans):
         with _cluster(args, "study") as client:
             compute(plans, client, progress=sys.stdout.isatty())
@@ -462,10 +537,10 @@ def cmd_study(args) -> int:
             print(f"  {st.dimension}={row['value']}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
                   f"FWHM_L {row['fwhm_l_deg']:.2f}°, haze {100 * row['haze']:.1f} %, "
                   f"{row['n_transmitted']}/{row['n_rays']} transmitted")
-    if args.report:
-        report = Path(args.report)
-        report.parent.mkdir(parents=True, exist_ok=True)
-        report.write_text(report_table(plans))
+    if report is not None:
+        from .cache import atomic_write
+
+        atomic_write(report, lambda tmp: tmp.write_text(report_table(plans)))
         print(f"wrote {report}")
     print(f"{len(plans)} studies in {time.perf_counter() - t0:.1f} s")
     return 0
@@ -480,6 +555,7 @@ def _add_camera(sub):
                    help="where the Dataset and PNGs go (default results/camera)")
     p.add_argument("--rows-per-task", default="3", help="sensor rows per rendering task (default 3)")
     p.add_argument("--dry-run", action="store_true", help="list each image as cached or to render")
+    p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_camera)
 
 
@@ -492,12 +568,20 @@ def cmd_camera(args) -> int:
         _int(args.workers, "workers", 1)
     _absolute_paths(args)
     study = load_camera(args.file, scale=args.scale)
+    fit = "use fewer pixels or samples, a smaller or thinner sheet, or larger voxels"
+    limits.check(limits.camera_estimate(study.images), what="`camera`", yes=True, disk_path=args.cache, fit=fit)
     t0 = time.perf_counter()
     entries = plan_camera(study, args.cache)
+    todo = [e.config for e in entries if not e.cached]
+    est = limits.camera_estimate(todo)
+    if est.cpu_s >= limits.SHOW_ESTIMATE_S:
+        print(f"twray camera: estimate for the {len(todo)} image{'' if len(todo) == 1 else 's'} to render "
+              f"(the sheet's wood counted whole): {est.text()}", file=sys.stderr)
     if args.dry_run:
         for e in entries:
             print(f"{study.name} {e.config.name}: {'cached' if e.cached else 'to render'} ({e.key[:12]})")
         return 0
+    limits.check(est, what="`camera`", yes=args.yes, disk_path=args.cache, fit=fit)
     if not all(e.cached for e in entries):
         with _cluster(args, "camera") as client:
             compute(entries, client, args.cache, rows_per_task=rows, progress=sys.stdout.isatty())
@@ -522,6 +606,7 @@ def cmd_slices(args) -> int:
     from .microstructure.export import write_slices
     from .microstructure.volume import WoodVolume
 
+    args.out = str(_out_path(args.out))
     for path in write_slices(WoodVolume.open(args.volume), args.out):
         print(path)
     return 0
@@ -531,6 +616,7 @@ def cmd_export_tiff(args) -> int:
     from .microstructure.export import write_tiff_stack
     from .microstructure.volume import WoodVolume
 
+    args.out = str(_out_path(args.out))
     paths = write_tiff_stack(WoodVolume.open(args.volume), args.out)
     print(f"wrote {len(paths)} TIFF slices (one per L) to {args.out}")
     return 0
@@ -671,14 +757,32 @@ def _log_to_stderr() -> None:
     logger.setLevel(logging.INFO)
 
 
+def _terminated(signum, frame):
+    raise KeyboardInterrupt  # a kill (SIGTERM) cleans up like Ctrl-C: staged outputs are removed
+
+
 def main(argv: list[str] | None = None) -> int:
     _log_to_stderr()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminated)
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)
     except ParameterError as exc:
         print(f"twray: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("twray: interrupted; nothing half-written is left (studies and the camera resume from their "
+              "cache)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except OSError as exc:  # the filesystem refused (disk full, permissions): one line, not a traceback
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        print(f"twray: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

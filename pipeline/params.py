@@ -216,9 +216,12 @@ def preset_names() -> list[str]:
 def read_yaml_file(path: Path, what: str) -> tuple[str, dict[str, Any]]:
     """The text of a YAML file and its top-level mapping; errors name the file and line."""
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ParameterError(f"cannot read {what} {str(path)!r}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ParameterError(f"{path}: must be a UTF-8 text file of YAML, got byte 0x{text_byte(exc)} at "
+                             f"offset {exc.start}") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -230,6 +233,10 @@ def read_yaml_file(path: Path, what: str) -> tuple[str, dict[str, Any]]:
     if not isinstance(data, dict):
         raise ParameterError(f"{path}: must be a mapping of key: value, got {type(data).__name__}")
     return text, data
+
+
+def text_byte(exc: UnicodeDecodeError) -> str:
+    return exc.object[exc.start:exc.start + 1].hex()
 
 
 def _read_yaml(path: Path, what: str) -> dict[str, Any]:

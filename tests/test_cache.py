@@ -268,3 +268,19 @@ def test_cache_ls_verify_and_gc(tmp_path, capsys):
     assert main(["cache", "gc", str(other), "--scale", "small", "--cache", str(cache)]) == 0
     assert list((cache / "micro").iterdir()) == [] and list((cache / "summary").iterdir()) == []
     assert main(["cache", "verify", "--cache", str(tmp_path / "nowhere")]) == 2
+
+
+def test_two_studies_run_at_once_on_one_cache_and_results_folder_both_succeed(tmp_path):
+    study = tmp_path / "damage.yaml"
+    study.write_text(STUDY)
+    args = [sys.executable, "-m", "pipeline", "study", str(study), "--scale", "small", "--cache",
+            str(tmp_path / "c"), "--results", str(tmp_path / "r"), "--workers", "1", "--threads", "1"]
+    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        assert p.returncode == 0 and "Traceback" not in err, err
+    assert outs[0][0].splitlines()[1:3] == outs[1][0].splitlines()[1:3]  # the same numbers
+    assert main(["cache", "verify", "--cache", str(tmp_path / "c")]) == 0
+    assert [p.name for p in (tmp_path / "r").iterdir()] == ["damage.zarr"]
+    with xr.open_zarr(tmp_path / "r" / "damage.zarr", consolidated=False) as ds:
+        assert np.all(np.isfinite(ds.FWHM_R.values))

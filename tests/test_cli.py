@@ -1,5 +1,6 @@
 """The command line: the generate contract, slices, and bad input (one line, exit 2, nothing written)."""
 
+import json
 import subprocess
 import sys
 
@@ -81,6 +82,9 @@ BAD = [
     (["--origin-um", "a,b,c"], "origin_um", "numbers"),
     (["--set", "fibre_diameter_um"], "--set", "key=value"),
     (["--set", "node_jitter=0.3"], "node_jitter", "in [0, 0.2]"),
+    (["--voxel-um", "nan"], "voxel_um", "finite"),
+    (["--voxel-um", "1e-6"], "size_um", "at most 1e13 voxels"),
+    (["--size-um", "10000000,150,100"], "generate", "add --yes to run it"),  # a 10 m sample: 22 CPU-h
 ]
 
 
@@ -271,6 +275,15 @@ def test_trace_oblique_beam_from_air_with_negative_angles(tmp_path, capsys):
     (["--incidence-deg", "-5,x"], "incidence_deg"),
     (["--refine", "0"], "refine"),
     (["--refine", "12"], "refine"),
+    # NaN and inf are refused wherever a number is read
+    (["--delta-ri", "nan"], "delta_ri"),
+    (["--beam-um", "inf"], "beam_um"),
+    (["--thickness-mm", "nan"], "thickness_mm"),
+    (["--incidence-deg", "nan,0"], "incidence_deg"),
+    # absurd sizes are refused before any work, with the estimate and what would make them fit
+    (["--rays", "1000000000000"], "more memory than this machine's"),
+    (["--beam-um", "1e9"], "a narrower beam (--beam-um)"),
+    (["--thickness-mm", "10000"], "a thinner sample"),
 ])
 def test_trace_bad_input(tmp_path, capsys, extra, field):
     argv = ["trace", "--preset", "birch", "--thickness-mm", "0.05", "--delta-ri", "0.01",
@@ -278,3 +291,81 @@ def test_trace_bad_input(tmp_path, capsys, extra, field):
     code, _, err = run(capsys, *argv)
     assert code == 2 and field in err and err.count("\n") == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def test_outputs_that_cannot_be_written_are_refused_before_any_work(tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    trace = ["trace", "--preset", "birch", "--thickness-mm", "0.05", "--delta-ri", "0.01", "--rays", "5"]
+    for out, rule in (("", "must be a path"), (str(tmp_path / "afile" / "r.nc"), "is a file")):
+        code, _, err = run(capsys, *trace, "--out", out)
+        assert code == 2 and rule in err and err.count("\n") == 1, err
+        code, _, err = run(capsys, "generate", "--size-um", "10,10,10", "--out", out)
+        assert code == 2 and rule in err and err.count("\n") == 1, err
+    code, _, err = run(capsys, "study", str(tmp_path / "afile"), "--results", str(tmp_path / "afile"))
+    assert code == 2 and "`results` must be a folder" in err
+    (tmp_path / "bin.yaml").write_bytes(b"\x00\x01\xff\xfe")
+    code, _, err = run(capsys, "study", str(tmp_path / "bin.yaml"), "--results", str(tmp_path / "r"))
+    assert code == 2 and "must be a UTF-8 text file of YAML" in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "bin.yaml"]
+
+
+def test_a_beam_wider_than_the_volume_is_refused_and_an_empty_one_traces_clean(tmp_path, capsys):
+    vol = np.zeros((40, 20, 40), np.uint8)  # all polymer: nothing scatters
+    np.save(tmp_path / "v.npy", vol)
+    base = ["trace", "--volume", str(tmp_path / "v.npy"), "--delta-ri", "0.01", "--rays", "20", "--json"]
+    code, _, err = run(capsys, *base, "--beam-um", "30")  # the volume is 20 µm wide at 0.5 µm
+    assert code == 2 and "`beam_um` must fit the volume's R-L face (20 x 20 µm)" in err
+    code, out, err = run(capsys, *base, "--beam-um", "10")
+    assert code == 0 and err == "", err  # no warning, no division by zero
+    s = json.loads(out)
+    assert s["fwhm_r_deg"] == 0.0 and s["haze"] == 0.0 and s["n_transmitted"] == 20
+
+
+def test_a_long_run_asks_for_yes_above_the_configured_cpu_hours(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("TWRAY_CONFIRM_CPU_HOURS", "0.001")
+    argv = ["generate", "--size-um", "300,300,300", "--out", str(tmp_path / "v.zarr")]
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and "add --yes to run it" in err and "CPU" in err and "use --lazy" in err
+    assert list(tmp_path.iterdir()) == []
+    code, _, _ = run(capsys, *argv, "--lazy")  # nothing generated: nothing to ask
+    assert code == 0
+    monkeypatch.setenv("TWRAY_CONFIRM_CPU_HOURS", "lots")
+    code, _, err = run(capsys, *argv[:-1], str(tmp_path / "w.zarr"), "--lazy")
+    assert code == 2 and "TWRAY_CONFIRM_CPU_HOURS" in err
+
+
+def test_ctrl_c_is_one_line_exit_130_and_leaves_nothing(tmp_path):
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "generate", "--size-um", "1000,1000,1000",
+                             "--out", str(tmp_path / "v.zarr"), "--yes"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not any(p.name.startswith(".v.zarr.partial") for p in tmp_path.iterdir()):
+        time.sleep(0.2)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("twray: interrupted"), err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_lazy_volume_traces_as_its_generated_twin_and_an_empty_one_is_refused(tmp_path, capsys):
+    for name, lazy in (("lazy.zarr", ["--lazy"]), ("full.zarr", [])):
+        code, _, err = run(capsys, "generate", "--size-um", "20,15,20", "--seed", "2", "--out",
+                           str(tmp_path / name), *lazy)
+        assert code == 0, err
+    results = []
+    for name in ("lazy.zarr", "full.zarr"):
+        code, out, err = run(capsys, "trace", "--volume", str(tmp_path / name), "--delta-ri", "0.02",
+                             "--rays", "30", "--beam-um", "8", "--json")
+        assert code == 0, err
+        s = json.loads(out)
+        results.append((s["fwhm_r_deg"], s["haze"], s["interfaces_per_ray"]))
+    assert results[0] == results[1] and results[0][2] > 0
+    np.save(tmp_path / "flat.npy", np.zeros((20, 0, 20), np.uint8))
+    code, _, err = run(capsys, "trace", "--volume", str(tmp_path / "flat.npy"), "--delta-ri", "0.01",
+                       "--rays", "5", "--beam-um", "2")
+    assert code == 2 and "at least one voxel along R, T and L" in err and err.count("\n") == 1

@@ -396,3 +396,33 @@ def test_relative_cache_and_results_are_the_clients_on_a_scheduler_whose_workers
     assert code == 0, capsys.readouterr().err
     assert (here / "cache" / "rays").is_dir() and (here / "out" / "tiny.zarr").is_dir()
     assert list(elsewhere.iterdir()) == []
+
+
+@pytest.mark.parametrize("line, rule", [
+    ("rays: 1000000000000", "more memory than this machine's"),
+    ("beam_um: 1000000000", "more disk than the"),  # the wood under a 1 km beam
+    ("voxel_um: 0.000001", "more disk than the"),
+])
+def test_absurd_sizes_are_refused_before_planning_even_in_a_dry_run(tmp_path, capsys, line, rule):
+    study = tmp_path / "big.yaml"
+    key = line.split(":")[0]
+    text = TINY.replace("{values}", "[0.01]")
+    text = "\n".join(ln for ln in text.splitlines() if not ln.startswith(key + ":")) + f"\n{line}\n"
+    study.write_text(text)
+    t0 = time.perf_counter()
+    code = main(["study", str(study), "--scale", "paper", "--cache", str(tmp_path / "c"),
+                 "--results", str(tmp_path / "r"), "--dry-run"])
+    err = capsys.readouterr().err
+    assert code == 2 and rule in err and "`study` needs ~" in err and err.count("\n") == 1, err
+    assert time.perf_counter() - t0 < 10 and sorted(p.name for p in tmp_path.iterdir()) == ["big.yaml"]
+
+
+def test_a_study_prints_its_estimate_and_asks_for_yes_above_the_threshold(tmp_path, capsys, monkeypatch):
+    study = tiny(tmp_path, [0.01])
+    args = ["study", str(study), "--scale", "small", "--cache", str(tmp_path / "c"),
+            "--results", str(tmp_path / "r"), "--workers", "1"]
+    monkeypatch.setenv("TWRAY_CONFIRM_CPU_HOURS", "0")
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "`study` needs ~" in err and "CPU-s of CPU" in err and "add --yes to run it" in err
+    assert not (tmp_path / "r").exists()

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cache import atomic_write
 from .volume import WoodVolume
 
 PLANES = {
@@ -43,7 +44,7 @@ def write_slices(vol: WoodVolume, out: str | Path) -> list[Path]:
     for ax, (name, (title, _, (rows, cols))) in zip(axes, PLANES.items()):
         img = plane(vol, name)
         path = out / f"slice_{name}.png"
-        Image.fromarray(((1 - img) * 255).astype(np.uint8)).save(path)
+        atomic_write(path, lambda tmp: Image.fromarray(((1 - img) * 255).astype(np.uint8)).save(tmp, format="PNG"))
         written.append(path)
         ax.imshow(img, cmap="gray_r", origin="lower", interpolation="nearest",
                   extent=(0, img.shape[1] * v, 0, img.shape[0] * v))
@@ -53,7 +54,7 @@ def write_slices(vol: WoodVolume, out: str | Path) -> list[Path]:
     fig.suptitle(f"{vol.path.name}: {vol.params.species}, wall black, polymer white")
     fig.tight_layout()
     path = out / "slices.png"
-    fig.savefig(path, dpi=100)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     plt.close(fig)
     written.append(path)
     return written
@@ -73,8 +74,8 @@ def write_tiff_stack(vol: WoodVolume, out: str | Path) -> list[Path]:
         block = vol[:, :, k0:k0 + cl]
         for dk in range(block.shape[2]):
             path = out / f"slice_{k0 + dk:0{width}d}.tif"
-            tifffile.imwrite(path, np.ascontiguousarray(block[:, :, dk]), imagej=True,
-                             resolution=(res, res),
-                             metadata={"unit": "um", "spacing": vol.grid.voxel_um, "axes": "YX"})
+            atomic_write(path, lambda tmp: tifffile.imwrite(
+                tmp, np.ascontiguousarray(block[:, :, dk]), imagej=True, resolution=(res, res),
+                metadata={"unit": "um", "spacing": vol.grid.voxel_um, "axes": "YX"}))
             paths.append(path)
     return paths

@@ -237,6 +237,9 @@ class WoodVolume:
         return cls(path, params, grid, meta["seed"])
 
     # ------------------------------------------------------------------ geometry
+    ndim = 3
+    dtype = np.dtype(np.uint8)
+
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(self._array.shape)

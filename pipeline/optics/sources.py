@@ -39,6 +39,9 @@ class ArraySource:
     def __init__(self, array, *, chunks=(64, 64, 64)):
         if getattr(array, "ndim", None) != 3:
             raise ParameterError(f"`volume` must be a 3-D array (R, T, L), got shape {np.shape(array)}")
+        if min(array.shape) < 1:
+            raise ParameterError(f"`volume` must hold at least one voxel along R, T and L, got shape "
+                                 f"{tuple(array.shape)}")
         self.array = array
         self.shape = tuple(int(s) for s in array.shape)
         self.chunks = tuple(int(min(c, s)) for c, s in zip(chunks, self.shape))
@@ -122,6 +125,10 @@ def load_volume(path: str | Path):
     if path.is_dir() and (path / "zarr.json").exists():
         import zarr
 
+        from ..microstructure.volume import WoodVolume, written_by_twray
+
+        if written_by_twray(path) and "twray" in zarr.open_group(path, mode="r").attrs:
+            return WoodVolume.open(path)  # a lazy volume's chunks are generated as they are read
         node = zarr.open(path, mode="r")
         if hasattr(node, "shape"):
             return node
