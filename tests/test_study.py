@@ -414,7 +414,7 @@ def test_absurd_sizes_are_refused_before_planning_even_in_a_dry_run(tmp_path, ca
                  "--results", str(tmp_path / "r"), "--dry-run"])
     err = capsys.readouterr().err
     assert code == 2 and rule in err and "`study` needs ~" in err and err.count("\n") == 1, err
-    assert time.perf_counter() - t0 < 10 and sorted(p.name for p in tmp_path.iterdir()) == ["big.yaml"]
+    assert time.perf_counter() - t0 < 1 and sorted(p.name for p in tmp_path.iterdir()) == ["big.yaml"]
 
 
 def test_a_study_prints_its_estimate_and_asks_for_yes_above_the_threshold(tmp_path, capsys, monkeypatch):
