@@ -33,6 +33,7 @@ import os
 import re
 import shutil
 import socket
+import sys
 import time
 import uuid
 import zipfile
@@ -42,6 +43,36 @@ from pathlib import Path
 import numpy as np
 
 log = logging.getLogger("twray.cache")
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Log records as ``twray: warning: ...`` lines on the current ``sys.stderr``."""
+
+    def __init__(self):
+        super().__init__()
+        self.setFormatter(logging.Formatter("twray: %(levelname)s: %(message)s"))
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _):
+        pass
+
+    def format(self, record):
+        record = logging.makeLogRecord({**record.__dict__, "levelname": record.levelname.lower()})
+        return super().format(record)
+
+
+def log_to_stderr() -> None:
+    """twray's warnings (a damaged cache entry recomputed, ...) on stderr, one line each: in the
+    command, and in each worker process, whose tasks call it too."""
+    logger = logging.getLogger("twray")
+    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
+        logger.addHandler(_StderrHandler())
+    logger.setLevel(logging.INFO)
+
 
 HOST = re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:32] or "host"
 # Leftovers of another host's runs are removed only once they are this old [s]:
@@ -161,6 +192,8 @@ UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.
 
 
 def _damaged(path: Path, why: str) -> None:
+    if not logging.getLogger().handlers:  # nobody set up logging (a command's worker process)
+        log_to_stderr()
     log.warning("cache entry %s is damaged (%s): computing it again", path, why)
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import logging
 import math
 import os
 import re
@@ -21,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from . import __version__, limits
+from .cache import log_to_stderr
 from .params import ParameterError, build_params, make_grid, parse_set, parse_triple, preset_names
 
 EXIT_USAGE = 2
@@ -152,14 +152,13 @@ def cmd_generate(args) -> int:
             client, cluster = _client(workers, args.scheduler)
             n = vol.generate(scheduler=client)
         publish(staged, out, args.overwrite)
-    except BaseException:
-        shutil.rmtree(staged, ignore_errors=True)
-        raise
     finally:
+        # Workers stop before the staged store is removed (they would write into it again).
         if client is not None:
             client.close()
         if cluster is not None:
             cluster.close()
+        shutil.rmtree(staged, ignore_errors=True)
     dt = time.perf_counter() - t0
     msg = (f"{out}: {params.species}, shape {grid.shape} (R, T, L) at {grid.voxel_um:g} µm, "
            f"chunks {tuple(vol.chunks)}")
@@ -728,41 +727,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-class _StderrHandler(logging.StreamHandler):
-    """Log records as ``twray: warning: ...`` lines on the current ``sys.stderr``."""
-
-    def __init__(self):
-        super().__init__()
-        self.setFormatter(logging.Formatter("twray: %(levelname)s: %(message)s"))
-
-    @property
-    def stream(self):
-        return sys.stderr
-
-    @stream.setter
-    def stream(self, _):
-        pass
-
-    def format(self, record):
-        record = logging.makeLogRecord({**record.__dict__, "levelname": record.levelname.lower()})
-        return super().format(record)
-
-
-def _log_to_stderr() -> None:
-    """twray's warnings (a damaged cache entry recomputed, ...) on stderr, one line each."""
-    logger = logging.getLogger("twray")
-    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
-        logger.addHandler(_StderrHandler())
-        logger.propagate = False
-    logger.setLevel(logging.INFO)
-
-
 def _terminated(signum, frame):
     raise KeyboardInterrupt  # a kill (SIGTERM) cleans up like Ctrl-C: staged outputs are removed
 
 
 def main(argv: list[str] | None = None) -> int:
-    _log_to_stderr()
+    log_to_stderr()
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _terminated)

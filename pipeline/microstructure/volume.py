@@ -28,7 +28,7 @@ import zarr
 from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
-from ..cache import temp_name
+from ..cache import log_to_stderr, temp_name
 from ..params import Grid, ParameterError, WoodParams, validate
 from .model import generate_block
 
@@ -140,6 +140,8 @@ class ChunkFiles:
         """Chunk ``d`` (shape ``chunks``), or None when it has no file or a damaged one (logged)."""
         data, why = self.check(d)
         if why:
+            if not logging.getLogger().handlers:  # nobody set up logging (a command's worker process)
+                log_to_stderr()
             log.warning("wood chunk %s is damaged (%s): generating it again", self.path(d), why)
         return data
 
@@ -154,6 +156,8 @@ class ChunkFiles:
         if self.identity is not None:
             raw += _DIGEST_HEADER + self._digest(d, raw)
         path = self.path(d)
+        if not self.root.is_dir():  # the store was removed (an interrupted run): do not make it again
+            raise FileNotFoundError(f"wood store {self.root.parent} is gone")
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = temp_name(path, "tmp")
         try:
@@ -353,12 +357,18 @@ class WoodVolume:
             return 0
         groups = [todo[i:i + batch] for i in range(0, len(todo), batch)]
         tasks = [dask.delayed(_generate_chunks)(str(self.path), g) for g in groups]
-        kwargs = {}
-        if scheduler is None or isinstance(scheduler, str):
-            kwargs["scheduler"] = scheduler or "threads"
+        if scheduler is None or scheduler == "threads":
+            # A pool of our own, shut down (its running tasks finished) before this returns or
+            # raises: after an interrupt no thread writes into the store any more.
+            from concurrent.futures import ThreadPoolExecutor
+
+            pool = ThreadPoolExecutor(os.cpu_count() or 1)
+            try:
+                results = dask.compute(*tasks, scheduler="threads", pool=pool)
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
         else:
-            kwargs["scheduler"] = scheduler
-        results = dask.compute(*tasks, **kwargs)
+            results = dask.compute(*tasks, scheduler=scheduler)
         return int(sum(results))
 
     def wall_fraction(self) -> float:
