@@ -616,7 +616,15 @@ def cmd_export_tiff(args) -> int:
     from .microstructure.volume import WoodVolume
 
     args.out = str(_out_path(args.out))
-    paths = write_tiff_stack(WoodVolume.open(args.volume), args.out)
+    vol = WoodVolume.open(args.volume)
+    nvox = math.prod(vol.shape)
+    todo = 1.0 - len(vol.generated_chunks()) / max(1, math.prod(vol.chunk_grid))
+    # Uncompressed 8-bit slices, and the chunks a lazy volume has not generated yet.
+    est = limits.Estimate(todo * nvox / limits.GENERATE_VOXELS_PER_CPU_S, limits.BASE_MEMORY,
+                          nvox + todo * nvox * limits.DISK_BYTES_PER_VOXEL)
+    limits.check(est, what=f"`export-tiff` of {nvox:.3g} voxels", yes=args.yes, disk_path=args.out,
+                 fit="export a smaller volume (generate one with a smaller --size-um)")
+    paths = write_tiff_stack(vol, args.out)
     print(f"wrote {len(paths)} TIFF slices (one per L) to {args.out}")
     return 0
 
@@ -720,6 +728,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export-tiff", help="one TIFF per L slice, for ImageJ/Avizo")
     p.add_argument("volume")
     p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_export_tiff)
     p = sub.add_parser("info", help="print a volume's shape, parameters and generated chunks")
     p.add_argument("volume")

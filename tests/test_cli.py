@@ -369,3 +369,12 @@ def test_a_lazy_volume_traces_as_its_generated_twin_and_an_empty_one_is_refused(
     code, _, err = run(capsys, "trace", "--volume", str(tmp_path / "flat.npy"), "--delta-ri", "0.01",
                        "--rays", "5", "--beam-um", "2")
     assert code == 2 and "at least one voxel along R, T and L" in err and err.count("\n") == 1
+
+
+def test_export_tiff_of_a_volume_larger_than_the_disk_is_refused_before_writing(tmp_path, capsys):
+    code, _, err = run(capsys, "generate", "--size-um", "500000,1500,1500", "--lazy", "--out",
+                       str(tmp_path / "huge.zarr"))  # 9e12 voxels: 9 TB of TIFF
+    assert code == 0, err
+    code, _, err = run(capsys, "export-tiff", str(tmp_path / "huge.zarr"), "--out", str(tmp_path / "tif"))
+    assert code == 2 and "more disk than the" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "tif").exists()
