@@ -9,7 +9,7 @@ SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
-.PHONY: install demo test bench bench-generate bench-trace bench-study bench-camera bench-accuracy clean table1 camera $(STUDIES)
+.PHONY: install wheel-check demo test bench bench-generate bench-trace bench-study bench-camera bench-accuracy clean table1 camera $(STUDIES)
 
 install: $(STAMP)
 
@@ -18,6 +18,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test]"
 	touch $(STAMP)
+
+## The wheel, installed into a fresh venv outside the checkout, running generate, trace and a study.
+wheel-check:
+	./.ci/wheel-check
 
 ## Main job: the paper's Table 1 (all studies) on a local Dask cluster, cached in results/cache.
 table1: install

@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+import dataclasses
 from dataclasses import replace
 from pathlib import Path
 
@@ -43,8 +44,59 @@ YES_HELP = ("run even if the estimate is above TWRAY_CONFIRM_CPU_HOURS (default 
             "fit memory or disk is refused anyway")
 
 
+EXAMPLES = {
+    "generate": ("Generate a wood microstructure (axes R, T, L; 1 = cell wall, 0 = polymer) from a species "
+                 "preset and physical parameters into an OME-Zarr store, chunk by chunk on a Dask cluster, "
+                 "or lazily (--lazy: chunks are made when first read). The same seed gives the same voxels "
+                 "whatever the chunks or workers.",
+                 ["twray generate --preset birch --size-um 150,150,100 --out birch.zarr",
+                  "twray generate --preset balsa --set wall_thickness_um=1.2 --size-um 1500,1500,1500 --lazy "
+                  "--out balsa.zarr",
+                  "twray generate --config my-wood.yaml --size-um 300,300,300 --workers 2 --out w.zarr"]),
+    "trace": ("Trace a square beam of rays through generated wood (--preset, made lazily as rays reach it) "
+              "or a user volume (--volume) with Snell refraction and total internal reflection, and report "
+              "FWHM_R and FWHM_L (Lorentz fits with bootstrap 95 % intervals) and haze.",
+              ["twray trace --preset birch --thickness-mm 0.5 --delta-ri 0.01",
+               "twray trace --volume sample.zarr --delta-ri -0.02 --rays 4000 --method fast --json",
+               "twray trace --preset balsa --thickness-mm 1 --delta-ri 0.02 --exit air --out rays.nc"]),
+    "study": ("Run parameter studies (the paper's Table 1) as a cached, incremental Dask graph: wood "
+              "chunks, ray shards and summaries are cache entries, verified when read, and each study "
+              "becomes results/<study>.zarr (an xarray Dataset). An unchanged rerun computes nothing.",
+              ["twray study studies/table1/study-2.yaml --scale small",
+               "twray study studies/table1/*.yaml --report results/table1-paper.md",
+               "twray study my-study.yaml --scheduler-file scheduler.json --dry-run"]),
+    "camera": ("Render what a thin-lens camera sees of an object through a TW sheet (the paper's Figure "
+               "5): every pixel's aperture samples are traced through the sheet's wood, cached per image.",
+               ["twray camera studies/camera/figure5.yaml --scale small",
+                "twray camera studies/camera/figure5.yaml --workers 2 --results results/camera"]),
+    "cache": ("List, verify or clean the cache of studies and the camera.",
+              ["twray cache ls", "twray cache verify --remove",
+               "twray cache gc studies/table1/*.yaml --scale paper --dry-run"]),
+    "slices": ("Write PNG cross-sections of a volume in the R-T, L-T and L-R planes (one pixel per voxel, "
+               "wall black) and an overview figure with axes in µm.",
+               ["twray slices birch.zarr --out slices/"]),
+    "export-tiff": ("Write one 8-bit TIFF per L slice (rows R, columns T, ImageJ metadata in µm), for ImageJ, "
+                    "Fiji or Avizo.",
+                    ["twray export-tiff birch.zarr --out tiff/"]),
+    "info": ("Print a volume's shape, voxel size, origin, parameters and how many chunks are generated, "
+             "as JSON.",
+             ["twray info birch.zarr"]),
+}
+
+
+def _subparser(sub, name: str, help: str, **kwargs):
+    """A subcommand whose --help has a description and examples."""
+    import textwrap
+
+    text, examples = EXAMPLES[name]
+    epilog = "examples:\n" + "\n".join(f"  {e}" for e in examples)
+    description = textwrap.fill(kwargs.pop("description", text), 88)
+    return sub.add_parser(name, help=help, description=description, epilog=epilog,
+                          formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
+
+
 def _add_generate(sub):
-    p = sub.add_parser("generate", help="generate a wood microstructure volume (OME-Zarr)")
+    p = _subparser(sub, "generate", help="generate a wood microstructure volume (OME-Zarr)")
     p.add_argument("--preset", default="birch", help=f"species preset ({', '.join(preset_names())})")
     p.add_argument("--config", help="YAML file of parameters (may name a preset)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -173,18 +225,19 @@ def cmd_generate(args) -> int:
 
 
 def _add_trace(sub):
-    p = sub.add_parser("trace", help="trace a beam through a volume and report FWHM_R, FWHM_L, haze")
+    p = _subparser(sub, "trace", help="trace a beam through a volume and report FWHM_R, FWHM_L, haze")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--volume", help="user volume: .npy, .zarr or a folder of TIFF slices "
                                       "(axes R, T, L; 1 = wall)")
     src.add_argument("--preset", help="generate wood lazily from this species preset")
     p.add_argument("--config", help="YAML file of wood parameters (with --preset)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one wood parameter (with --preset), e.g. --set wall_thickness_um=4 [µm]")
     p.add_argument("--thickness-mm", help="sample thickness along T [mm] (with --preset)")
     p.add_argument("--voxel-um", default="0.5", help="voxel size [µm]")
     p.add_argument("--delta-ri", required=True, help="RI of the wall minus RI of the polymer")
     p.add_argument("--ri-polymer", default="1.49", help="RI of the polymer (default 1.49)")
-    p.add_argument("--rays", default="1000")
+    p.add_argument("--rays", default="1000", help="number of rays in the beam (default 1000)")
     p.add_argument("--beam-um", default="150", help="side of the square beam footprint [µm]")
     p.add_argument("--beam-origin-um", default=None, help="beam centre R,L on the entrance face [µm]")
     p.add_argument("--incidence-deg", default=None,
@@ -199,7 +252,7 @@ def _add_trace(sub):
                    help="trace generated wood on voxels this many times smaller than --voxel-um "
                         "(default: the method's, 2 for accurate, 1 otherwise; a --volume is traced "
                         "on its own voxels)")
-    p.add_argument("--seed", default="1")
+    p.add_argument("--seed", default="1", help="non-negative integer seed of the wood and the beam (default 1)")
     p.add_argument("--out", default=None, help="per-ray dataset (.nc or .zarr)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--yes", action="store_true", help=YES_HELP)
@@ -281,9 +334,15 @@ def cmd_trace(args) -> int:
                     "delta_ri": dri, "ri_polymer": n_poly, "incidence_deg": list(incidence),
                     "seconds": elapsed, "chunks_loaded": result.chunks_loaded})
     if args.out:
-        _write_rays(result, summary, voxel, args.out)
+        inputs = {"volume": args.volume, "preset": args.preset, "config": args.config,
+                  "params": None if args.volume else params.to_dict(),
+                  "thickness_mm": None if args.volume else thickness, "voxel_um": _float(args.voxel_um, "voxel_um"),
+                  "traced_voxel_um": voxel, "delta_ri": dri, "ri_polymer": n_poly, "rays": rays,
+                  "beam_um": beam_um, "beam_centre_vox": list(centre), "incidence_deg": list(incidence),
+                  "seed": seed, "settings": dataclasses.asdict(result.settings)}
+        _write_rays(result, summary, voxel, args.out, inputs)
     if args.json:
-        print(json.dumps(summary))
+        print(strict_json(summary))
     else:
         print(f"{summary['n_transmitted']}/{summary['n_rays']} transmitted "
               f"(method {summary['method']}, exit {summary['exit']}): "
@@ -324,9 +383,8 @@ def _incidence(text: str | None) -> tuple[float, float]:
     return angles
 
 
-def _write_rays(result, summary, voxel, out):
-    import json
-
+def _write_rays(result, summary, voxel, out, inputs: dict):
+    import numpy as np
     import xarray as xr
 
     from .optics.tracer import STATUS_NAMES
@@ -349,10 +407,13 @@ def _write_rays(result, summary, voxel, out):
                 "long_name": "ray status", "flag_values": codes,
                 "flag_meanings": " ".join(STATUS_NAMES[c] for c in codes)}),
         },
-        coords={"ray": range(result.status.size), "axis": ["R", "T", "L"]},
+        coords={"ray": range(result.status.size), "axis": np.array(["R", "T", "L"], dtype=object)},
         attrs={"Conventions": "CF-1.10", "title": "twray per-ray trace result",
-               "source": f"twray {__version__}", "summary": json.dumps(summary)},
+               "source": f"twray {__version__}", "summary": strict_json(summary)},
     )
+    from .provenance import provenance_attrs
+
+    ds.attrs.update(provenance_attrs(inputs))
     from .microstructure.volume import publish, staged_path
 
     out = Path(out)
@@ -361,7 +422,9 @@ def _write_rays(result, summary, voxel, out):
     staged = staged_path(out)
     try:
         if out.suffix == ".zarr":
-            ds.to_zarr(staged, mode="w-")
+            from .study.run import write_zarr
+
+            write_zarr(ds, staged)
             publish(staged, out, overwrite=True)
         else:
             ds.to_netcdf(staged, engine="scipy")
@@ -371,6 +434,23 @@ def _write_rays(result, summary, voxel, out):
             shutil.rmtree(staged, ignore_errors=True)
         elif staged.exists():
             staged.unlink()
+
+
+def _finite_or_none(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def strict_json(value) -> str:
+    """JSON that strict parsers accept: NaN and infinities (an undefined fit) become null."""
+    import json
+
+    return json.dumps(_finite_or_none(value), allow_nan=False)
 
 
 def _out_path(text: str, name: str = "out") -> Path:
@@ -420,7 +500,7 @@ def _add_cluster_options(p) -> None:
 
 
 def _add_study(sub):
-    p = sub.add_parser("study", help="run parameter studies (Table 1) into results/<study>.zarr")
+    p = _subparser(sub, "study", help="run parameter studies (Table 1) into results/<study>.zarr")
     p.add_argument("files", nargs="+", metavar="FILE.yaml", help="study files, e.g. studies/table1/*.yaml")
     p.add_argument("--scale", default="paper", help="paper (the study's numbers) or small (quick)")
     _add_cluster_options(p)
@@ -546,7 +626,7 @@ def cmd_study(args) -> int:
 
 
 def _add_camera(sub):
-    p = sub.add_parser("camera", help="render images through a TW sheet with a thin-lens camera")
+    p = _subparser(sub, "camera", help="render images through a TW sheet with a thin-lens camera")
     p.add_argument("file", metavar="FILE.yaml", help="camera file, e.g. studies/camera/figure5.yaml")
     p.add_argument("--scale", default="paper", help="paper (the file's numbers) or small (quick)")
     _add_cluster_options(p)
@@ -637,16 +717,14 @@ def cmd_info(args) -> int:
 
 
 def _add_cache(sub):
-    p = sub.add_parser(
-        "cache", help="list, verify or clean the cache of studies and the camera",
+    p = _subparser(
+        sub, "cache", help="list, verify or clean the cache of studies and the camera",
         description="Every cache entry (wood chunk store, ray shard, summary, camera image) is named by "
                     "the key of what produced it and carries a digest of its content. `ls` lists them with "
                     "their size and provenance, `verify` checks every one (exit 1 if any is damaged; a "
                     "study recomputes damaged entries by itself), `gc` removes what the given study and "
-                    "camera files do not use, and what interrupted runs left. Examples: "
-                    "`twray cache ls`; `twray cache verify --remove`; "
-                    "`twray cache gc studies/table1/*.yaml --scale paper --dry-run`.")
-    p.add_argument("action", choices=("ls", "verify", "gc"))
+                    "camera files do not use, and what interrupted runs left.")
+    p.add_argument("action", choices=("ls", "verify", "gc"), help="ls, verify or gc")
     p.add_argument("files", nargs="*", metavar="FILE.yaml",
                    help="gc: the study and camera files whose entries are kept (default: every .yaml under "
                         "studies/)")
@@ -721,17 +799,17 @@ def build_parser() -> argparse.ArgumentParser:
     _add_study(sub)
     _add_camera(sub)
     _add_cache(sub)
-    p = sub.add_parser("slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
-    p.add_argument("volume")
+    p = _subparser(sub, "slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
+    p.add_argument("volume", help="a twray volume (.zarr)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=cmd_slices)
-    p = sub.add_parser("export-tiff", help="one TIFF per L slice, for ImageJ/Avizo")
-    p.add_argument("volume")
+    p = _subparser(sub, "export-tiff", help="one TIFF per L slice, for ImageJ/Avizo")
+    p.add_argument("volume", help="a twray volume (.zarr)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_export_tiff)
-    p = sub.add_parser("info", help="print a volume's shape, parameters and generated chunks")
-    p.add_argument("volume")
+    p = _subparser(sub, "info", help="print a volume's shape, parameters and generated chunks")
+    p.add_argument("volume", help="a twray volume (.zarr)")
     p.set_defaults(func=cmd_info)
     return parser
 

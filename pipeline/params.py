@@ -9,6 +9,7 @@ the rule, so the command line can print it as one line.
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +17,8 @@ from typing import Any
 
 import yaml
 
-PRESET_DIR = Path(__file__).resolve().parent.parent / "studies" / "presets"
+# Species presets are package data (in the wheel too), read through importlib.resources.
+PRESET_DIR = importlib.resources.files("pipeline") / "presets"
 
 
 class ParameterError(ValueError):
@@ -210,7 +212,7 @@ def validate(p: WoodParams) -> WoodParams:
 
 
 def preset_names() -> list[str]:
-    return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
+    return sorted(p.name[: -len(".yaml")] for p in PRESET_DIR.iterdir() if p.name.endswith(".yaml"))
 
 
 def read_yaml_file(path: Path, what: str) -> tuple[str, dict[str, Any]]:

@@ -214,7 +214,7 @@ def camera_dataset(study: CameraStudy, entries: list[Entry]):
     def sheet_value(get):
         return [np.nan if c.sheet is None else get(c.sheet) for c in cfgs]
 
-    return xr.Dataset(
+    ds = xr.Dataset(
         {
             "image": (("config", "row", "col"), np.stack([d["image"] for d in data]).astype(np.float32),
                       {"units": "1", "long_name": "mean object level seen by each pixel "
@@ -259,6 +259,11 @@ def camera_dataset(study: CameraStudy, entries: list[Entry]):
             "cache_keys": json.dumps({e.config.name: e.key for e in entries}),
         },
     )
+    from ..provenance import provenance_attrs
+
+    ds.attrs.update(provenance_attrs({"camera": study.name, "scale": study.scale,
+                                      "images": [image_record(c) for c in cfgs]}))
+    return ds
 
 
 def write_outputs(study: CameraStudy, entries: list[Entry], results_dir) -> list[Path]:

@@ -451,6 +451,13 @@ def study_dataset(plan: Plan):
             "scenes": json.dumps([scene_record(s) for s in st.scenes]),
         },
     )
+    from ..analysis import HAZE_ANGLE_DEG
+    from ..provenance import link_intervals, provenance_attrs
+
+    ds.attrs.update(provenance_attrs({"study": st.name, "scale": st.scale,
+                                      "scenes": [scene_record(s) for s in st.scenes]}))
+    link_intervals(ds, 0.95, N_BOOT)
+    ds["haze"].attrs["threshold_deg"] = HAZE_ANGLE_DEG
     return ds
 
 
@@ -501,7 +508,7 @@ def publish_dataset(build, out: Path, provenance: dict) -> Path:
     ds.attrs.update(provenance)
     ds.attrs[DIGEST_ATTR] = dataset_digest(ds)
     try:
-        ds.to_zarr(staged, mode="w", zarr_format=3, consolidated=False)
+        write_zarr(ds, staged)
         publish(staged, out, overwrite=True)
     finally:
         if staged.exists():
@@ -509,6 +516,17 @@ def publish_dataset(build, out: Path, provenance: dict) -> Path:
 
             shutil.rmtree(staged, ignore_errors=True)
     return out
+
+
+def write_zarr(ds, path: Path) -> None:
+    """``ds`` as a Zarr v3 store with consolidated metadata, so that a plain ``xr.open_zarr``
+    opens it without a warning (zarr's own note that v3 has no consolidated metadata in its
+    specification yet is silenced here)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Cc]onsolidated metadata.*")
+        ds.to_zarr(path, mode="w", zarr_format=3, consolidated=True)
 
 
 def write_dataset(plan: Plan, results_dir) -> Path:

@@ -3,7 +3,7 @@
 A study file declares a base scene and one parameter to vary::
 
     title: "Table 1, study 2: refractive-index difference"
-    preset: birch            # species preset (studies/presets/)
+    preset: birch            # species preset (pipeline/presets/)
     wood: {}                 # overrides of the preset (WoodParams fields)
     seed: 1
     thickness_mm: 1.0

@@ -1,0 +1,38 @@
+"""What every file twray writes says about how it was made, readable with xarray alone."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import shlex
+import sys
+
+from . import __version__
+
+
+def provenance_attrs(inputs: dict) -> dict:
+    """Attributes naming twray's, the tracer's and the generator's versions, the full resolved
+    ``inputs`` (as JSON), the date and the command line."""
+    from .optics.tracer import TRACER_VERSION
+    from .study.run import VERSIONS
+
+    return {
+        "twray_version": __version__,
+        "tracer_version": TRACER_VERSION,
+        "generator_version": VERSIONS["micro"],
+        "date_created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command_line": shlex.join([sys.argv[0].rsplit("/", 1)[-1], *sys.argv[1:]]),
+        "inputs": json.dumps(inputs, sort_keys=True, default=str),
+    }
+
+
+def link_intervals(ds, level: float, n_boot: int) -> None:
+    """Link each ``<name>_ci_lower/upper`` pair to ``<name>`` (CF ``ancillary_variables``) and
+    record the interval's level and bootstrap size on both bounds."""
+    for name in list(ds.data_vars):
+        lower, upper = f"{name}_ci_lower", f"{name}_ci_upper"
+        if lower in ds and upper in ds:
+            ds[name].attrs["ancillary_variables"] = f"{lower} {upper}"
+            for bound in (lower, upper):
+                ds[bound].attrs.update({"confidence_level": level, "bootstrap_resamples": n_boot,
+                                        "interval": "bootstrap percentile"})

@@ -1,0 +1,93 @@
+"""What a wheel needs and what strict consumers read: package data, a clean import, strict JSON."""
+
+import importlib.resources
+import json
+import subprocess
+import sys
+
+from pipeline.cli import main, strict_json
+
+
+def test_presets_are_package_data():
+    presets = importlib.resources.files("pipeline") / "presets"
+    assert {p.name for p in presets.iterdir() if p.name.endswith(".yaml")} >= {"birch.yaml", "balsa.yaml"}
+
+
+def test_the_package_imports_without_a_warning():
+    code = ("import pipeline.cli, pipeline.study.run, pipeline.camera.run, pipeline.inventory, "
+            "pipeline.optics.validation")
+    proc = subprocess.run([sys.executable, "-W", "error", "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_json_output_is_strict_when_a_fit_is_undefined(capsys, tmp_path):
+    assert strict_json({"a": float("nan"), "b": [1.0, float("inf")], "c": {"d": -float("inf")}}) == \
+        '{"a": null, "b": [1.0, null], "c": {"d": null}}'
+    # One ray: no bootstrap interval (NaN inside), null in the JSON.
+    import numpy as np
+
+    np.save(tmp_path / "v.npy", np.ones((20, 10, 20), np.uint8))
+    code = main(["trace", "--volume", str(tmp_path / "v.npy"), "--delta-ri", "0.01", "--rays", "1",
+                 "--beam-um", "1", "--json"])
+    out = capsys.readouterr().out
+    assert code == 0
+
+    def refuse(constant):
+        raise ValueError(f"not strict JSON: {constant}")
+
+    summary = json.loads(out, parse_constant=refuse)
+    assert summary["fwhm_r_ci_deg"] == [None, None] and summary["n_rays"] == 1
+
+
+def test_every_subcommand_has_a_description_examples_and_help_for_every_flag():
+    import argparse
+
+    from pipeline.cli import build_parser
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(subs.choices) >= {"generate", "trace", "study", "camera", "cache", "slices", "export-tiff", "info"}
+    for name, sub in subs.choices.items():
+        text = sub.format_help()
+        assert sub.description and "examples:\n  twray " + name in text, name
+        for action in sub._actions:
+            if not isinstance(action, argparse._HelpAction):
+                assert action.help, f"twray {name} {action.option_strings or action.dest} has no help"
+
+
+PROVENANCE = ("twray_version", "tracer_version", "generator_version", "date_created", "command_line", "inputs")
+
+
+def test_results_carry_their_provenance_and_open_with_plain_xarray_without_warnings(tmp_path, capsys):
+    import warnings
+
+    import xarray as xr
+
+    study = tmp_path / "p.yaml"
+    study.write_text("title: provenance\npreset: birch\nrays: 200\nbeam_um: 40\nthickness_mm: 0.2\n"
+                     "delta_ri: 0.02\ntrace: {method: fast}\nvary: {parameter: delta_ri, values: [0.02]}\n")
+    assert main(["study", str(study), "--scale", "small", "--cache", str(tmp_path / "c"), "--results",
+                 str(tmp_path / "r"), "--workers", "1"]) == 0
+    base = ["trace", "--preset", "birch", "--thickness-mm", "0.03", "--delta-ri", "0.01", "--rays", "20",
+            "--seed", "7", "--method", "fast"]
+    assert main(base + ["--out", str(tmp_path / "t.zarr")]) == 0
+    assert main(base + ["--out", str(tmp_path / "t.nc")]) == 0
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = xr.open_zarr(tmp_path / "r" / "p.zarr")
+        tz = xr.open_zarr(tmp_path / "t.zarr")
+    tn = xr.open_dataset(tmp_path / "t.nc")
+    from pipeline.optics.tracer import TRACER_VERSION
+
+    for d in (ds, tz, tn):
+        assert all(k in d.attrs for k in PROVENANCE), sorted(d.attrs)
+        assert d.attrs["tracer_version"] == TRACER_VERSION and d.attrs["date_created"].startswith("20")
+    inputs = json.loads(tz.attrs["inputs"])
+    assert inputs["seed"] == 7 and inputs["rays"] == 20 and inputs["settings"]["method"] == "fast"
+    assert inputs["params"]["species"] == "birch" and inputs["thickness_mm"] == 0.03
+    scenes = json.loads(ds.attrs["inputs"])["scenes"]
+    assert len(scenes) == 1 and scenes[0]["rays"] == 20
+    assert ds.FWHM_R.attrs["ancillary_variables"] == "FWHM_R_ci_lower FWHM_R_ci_upper"
+    assert ds.FWHM_R_ci_lower.attrs["confidence_level"] == 0.95
+    assert ds.FWHM_R_ci_upper.attrs["bootstrap_resamples"] == 200 and ds.haze.attrs["threshold_deg"] == 2.5
