@@ -22,6 +22,7 @@ from pathlib import Path
 
 from . import __version__, limits
 from .cache import log_to_stderr
+from .progress import mode as progress_mode
 from .params import ParameterError, build_params, make_grid, parse_set, parse_triple, preset_names
 
 EXIT_USAGE = 2
@@ -101,18 +102,22 @@ def _add_generate(sub):
     p.add_argument("--config", help="YAML file of parameters (may name a preset)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one parameter, e.g. --set wall_thickness_um=4")
-    p.add_argument("--size-um", required=True, help="sample size R,T,L [µm]")
+    p.add_argument("--size-um", default=None, help="sample size R,T,L [µm] (required unless --materialise)")
     p.add_argument("--origin-um", default="0,0,0", help="position of the sample corner R,T,L [µm]")
     p.add_argument("--voxel-um", default="0.5", help="voxel size [µm] (default 0.5)")
     p.add_argument("--chunks", default="128,128,128", help="chunk shape R,T,L [voxels]")
     p.add_argument("--seed", default="1", help="non-negative integer seed")
     p.add_argument("--out", required=True, help="output store, e.g. sample.zarr")
+    p.add_argument("--materialise", action="store_true",
+                   help="generate every chunk a --lazy store at OUT does not hold yet (other tools read "
+                        "those as 255), in place")
     p.add_argument("--lazy", action="store_true",
                    help="write only the metadata; chunks are generated when first read")
     p.add_argument("--workers", default=None,
                    help="generate on a local dask.distributed cluster of N worker processes")
     p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
     p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_generate)
 
@@ -169,9 +174,44 @@ def _client(workers, scheduler):
     return None, None
 
 
+def _materialise(args) -> int:
+    """Generate in place the chunks a lazy twray volume does not hold yet."""
+    from .microstructure.volume import WoodVolume
+
+    if args.size_um is not None or args.lazy or args.overwrite:
+        raise ParameterError("`--materialise` works on the existing store at --out: give no --size-um, "
+                             "--lazy or --overwrite")
+    out = _out_path(args.out)
+    vol = WoodVolume.open(out)
+    todo = len(vol.all_chunks()) - len(vol.generated_chunks())
+    nvox = todo / max(1, len(vol.all_chunks())) * math.prod(vol.shape)
+    est = limits.Estimate(nvox / limits.GENERATE_VOXELS_PER_CPU_S, limits.BASE_MEMORY,
+                          nvox * limits.DISK_BYTES_PER_VOXEL)
+    limits.check(est, what=f"`generate --materialise` of {todo} chunks", yes=args.yes, disk_path=out,
+                 fit="keep the store lazy: twray generates chunks as they are read")
+    workers = _int(args.workers, "workers", 1) if args.workers is not None else None
+    client, cluster = _client(workers, args.scheduler)
+    t0 = time.perf_counter()
+    try:
+        n = vol.generate(scheduler=client, progress=progress_mode(args.quiet))
+        vol.build_pyramid()
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+    print(f"{out}: {n} chunks generated in {time.perf_counter() - t0:.1f} s; all "
+          f"{len(vol.all_chunks())} chunks are stored")
+    return 0
+
+
 def cmd_generate(args) -> int:
     from .microstructure.volume import WoodVolume, check_replaceable, publish, staged_path
 
+    if args.materialise:
+        return _materialise(args)
+    if args.size_um is None:
+        raise ParameterError("`size_um` is required (R,T,L in µm), unless --materialise")
     params = build_params(args.preset, args.config, parse_set(args.overrides))
     size = parse_triple(args.size_um, "size_um", positive=True)
     origin = parse_triple(args.origin_um, "origin_um", positive=False)
@@ -202,7 +242,8 @@ def cmd_generate(args) -> int:
         n = 0
         if not args.lazy:
             client, cluster = _client(workers, args.scheduler)
-            n = vol.generate(scheduler=client)
+            n = vol.generate(scheduler=client, progress=progress_mode(args.quiet))
+            vol.build_pyramid()
         publish(staged, out, args.overwrite)
     finally:
         # Workers stop before the staged store is removed (they would write into it again).
@@ -508,6 +549,7 @@ def _add_study(sub):
     p.add_argument("--shard-rays", default="250", help="rays per tracing task (default 250)")
     p.add_argument("--dry-run", action="store_true", help="list each stage as cached or to compute")
     p.add_argument("--report", default=None, help="also write a Markdown table of every study here")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
     p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_study)
 
@@ -605,7 +647,7 @@ def cmd_study(args) -> int:
     limits.check(est, what="`study`", yes=args.yes, disk_path=args.cache, fit=fit)
     if not all(p.up_to_date for p in plans):
         with _cluster(args, "study") as client:
-            compute(plans, client, progress=sys.stdout.isatty())
+            compute(plans, client, progress=progress_mode(args.quiet))
         plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
     for plan in plans:
         out = write_dataset(plan, args.results)
@@ -634,6 +676,7 @@ def _add_camera(sub):
                    help="where the Dataset and PNGs go (default results/camera)")
     p.add_argument("--rows-per-task", default="3", help="sensor rows per rendering task (default 3)")
     p.add_argument("--dry-run", action="store_true", help="list each image as cached or to render")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
     p.add_argument("--yes", action="store_true", help=YES_HELP)
     p.set_defaults(func=cmd_camera)
 
@@ -663,7 +706,7 @@ def cmd_camera(args) -> int:
     limits.check(est, what="`camera`", yes=args.yes, disk_path=args.cache, fit=fit)
     if not all(e.cached for e in entries):
         with _cluster(args, "camera") as client:
-            compute(entries, client, args.cache, rows_per_task=rows, progress=sys.stdout.isatty())
+            compute(entries, client, args.cache, rows_per_task=rows, progress=progress_mode(args.quiet))
         entries = plan_camera(study, args.cache)
     paths = write_outputs(study, entries, args.results)
     print(f"{paths[0]}: {study.title} (scale {study.scale}, {study.images[0].camera.samples} "

@@ -378,3 +378,37 @@ def test_export_tiff_of_a_volume_larger_than_the_disk_is_refused_before_writing(
     code, _, err = run(capsys, "export-tiff", str(tmp_path / "huge.zarr"), "--out", str(tmp_path / "tif"))
     assert code == 2 and "more disk than the" in err and err.count("\n") == 1, err
     assert not (tmp_path / "tif").exists()
+
+
+def test_materialise_generates_a_lazy_store_in_place_and_equals_an_eager_one(tmp_path, capsys):
+    import zarr
+
+    common = ["generate", "--size-um", "40,30,40", "--chunks", "32,32,32", "--seed", "4"]
+    assert run(capsys, *common, "--lazy", "--out", str(tmp_path / "lazy.zarr"))[0] == 0
+    assert run(capsys, *common, "--out", str(tmp_path / "eager.zarr"))[0] == 0
+    raw = zarr.open_array(tmp_path / "lazy.zarr" / "0", mode="r")
+    assert np.all(raw[:] == 255)  # outside twray, a lazy store reads as 255 until generated
+    code, out, err = run(capsys, "generate", "--materialise", "--out", str(tmp_path / "lazy.zarr"))
+    assert code == 0 and "18 chunks generated" in out, err
+    assert np.array_equal(raw[:], zarr.open_array(tmp_path / "eager.zarr" / "0", mode="r")[:])
+    code, _, err = run(capsys, "generate", "--materialise", "--size-um", "1,1,1", "--out", str(tmp_path / "x"))
+    assert code == 2 and "--materialise" in err
+
+
+def test_large_volumes_get_an_ome_zarr_pyramid_that_viewers_open_coarse_first(tmp_path, capsys):
+    import json
+
+    import zarr
+
+    out = tmp_path / "long.zarr"  # 600 voxels along R: above the 512 of the top level
+    assert run(capsys, "generate", "--size-um", "300,20,20", "--chunks", "128,40,40", "--out", str(out))[0] == 0
+    ms = json.loads((out / "zarr.json").read_text())["attributes"]["ome"]["multiscales"][0]
+    assert [d["path"] for d in ms["datasets"]] == ["0", "1"]
+    assert ms["datasets"][1]["coordinateTransformations"][0]["scale"] == [1.0, 1.0, 1.0]
+    full, coarse = zarr.open_array(out / "0")[:], zarr.open_array(out / "1")[:]
+    assert coarse.shape == (300, 20, 20) and np.array_equal(coarse, full[::2, ::2, ::2])
+    assert WoodVolume.open(out).shape == (600, 40, 40)
+    small = tmp_path / "small.zarr"
+    assert run(capsys, "generate", "--size-um", "20,20,20", "--out", str(small))[0] == 0
+    ms = json.loads((small / "zarr.json").read_text())["attributes"]["ome"]["multiscales"][0]
+    assert [d["path"] for d in ms["datasets"]] == ["0"] and not (small / "1").exists()

@@ -91,3 +91,23 @@ def test_results_carry_their_provenance_and_open_with_plain_xarray_without_warni
     assert ds.FWHM_R.attrs["ancillary_variables"] == "FWHM_R_ci_lower FWHM_R_ci_upper"
     assert ds.FWHM_R_ci_lower.attrs["confidence_level"] == 0.95
     assert ds.FWHM_R_ci_upper.attrs["bootstrap_resamples"] == 200 and ds.haze.attrs["threshold_deg"] == 2.5
+
+
+def test_progress_lines_appear_when_stdout_is_a_pipe_and_not_with_quiet(tmp_path):
+    env = {**__import__("os").environ, "TWRAY_PROGRESS_EVERY_S": "0.5"}
+    gen = [sys.executable, "-m", "pipeline", "generate", "--size-um", "100,100,100", "--chunks", "32,32,32"]
+    proc = subprocess.run(gen + ["--out", str(tmp_path / "a.zarr")], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "twray generate: 343/343 tasks done" in proc.stderr, proc.stderr
+    proc = subprocess.run(gen + ["--out", str(tmp_path / "b.zarr"), "--quiet"], capture_output=True, text=True,
+                          env=env)
+    assert proc.returncode == 0 and "tasks done" not in proc.stderr, proc.stderr
+    study = tmp_path / "p.yaml"
+    study.write_text("title: progress\npreset: birch\nrays: 200\nbeam_um: 40\nthickness_mm: 0.2\n"
+                     "delta_ri: 0.02\ntrace: {method: fast}\nvary: {parameter: delta_ri, values: [0.01, 0.02]}\n")
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "study", str(study), "--scale", "small", "--cache",
+                           str(tmp_path / "c"), "--results", str(tmp_path / "r"), "--workers", "1"],
+                          capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("twray study: ") and "tasks done" in ln]
+    assert lines and lines[-1].split()[2].split("/")[0] == lines[-1].split()[2].split("/")[1], proc.stderr

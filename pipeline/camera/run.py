@@ -97,7 +97,7 @@ def assemble(cfg: ImageConfig, path: str, *blocks: RowsImage) -> dict:
 
 
 def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROWS_PER_TASK,
-            progress: bool = False) -> dict:
+            progress: str = "off") -> dict:
     """Render every image of ``entries`` that is not cached, on a ``distributed.Client``."""
     import dask
 
@@ -117,11 +117,10 @@ def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROW
     report = {"images": len(tasks), "row_tasks": n_blocks, "rays": 0}
     if not tasks:
         return report
-    futures = client.compute(tasks)
-    if progress:
-        from distributed import progress as show
+    from ..progress import follow, graph_keys
 
-        show(futures)
+    futures = client.compute(tasks)
+    follow(client, futures, graph_keys(tasks), "twray camera", progress)
     results = client.gather(futures)
     report["rays"] = int(sum(r["rays"] for r in results))
     return report

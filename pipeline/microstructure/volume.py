@@ -36,24 +36,27 @@ ARRAY = "0"
 NOT_GENERATED = 255
 AXES = ("r", "t", "l")
 PUBLISH_TRIES = 50
+PYRAMID_TOP = 512  # generated volumes get coarser levels until this many voxels along every axis
 
 log = logging.getLogger("twray.cache")
 
 
-def _ome_attrs(grid: Grid, name: str) -> dict:
-    """OME-Zarr (NGFF 0.5) multiscales metadata: voxel size and origin in µm."""
+def _ome_attrs(grid: Grid, name: str, levels: int = 0) -> dict:
+    """OME-Zarr (NGFF 0.5) multiscales metadata: voxel size and origin in µm, for the full
+    resolution ``"0"`` and ``levels`` coarser ones (level i keeps every 2**i-th voxel)."""
     return {
         "version": "0.5",
         "multiscales": [{
             "name": name,
             "axes": [{"name": a, "type": "space", "unit": "micrometer"} for a in AXES],
             "datasets": [{
-                "path": ARRAY,
+                "path": str(i),
                 "coordinateTransformations": [
-                    {"type": "scale", "scale": [grid.voxel_um] * 3},
+                    {"type": "scale", "scale": [grid.voxel_um * 2 ** i] * 3},
                     {"type": "translation", "translation": list(grid.origin_um)},
                 ],
-            }],
+            } for i in range(levels + 1)],
+            **({"type": "nearest (every 2**i-th voxel)"} if levels else {}),
         }],
     }
 
@@ -340,6 +343,7 @@ class WoodVolume:
         *,
         scheduler=None,
         batch: int = 1,
+        progress: str = "off",
     ) -> int:
         """Generate the given chunks (default: all) in parallel with Dask.
 
@@ -357,6 +361,8 @@ class WoodVolume:
             return 0
         groups = [todo[i:i + batch] for i in range(0, len(todo), batch)]
         tasks = [dask.delayed(_generate_chunks)(str(self.path), g) for g in groups]
+        from ..progress import LocalLines, follow, graph_keys
+
         if scheduler is None or scheduler == "threads":
             # A pool of our own, shut down (its running tasks finished) before this returns or
             # raises: after an interrupt no thread writes into the store any more.
@@ -364,12 +370,52 @@ class WoodVolume:
 
             pool = ThreadPoolExecutor(os.cpu_count() or 1)
             try:
-                results = dask.compute(*tasks, scheduler="threads", pool=pool)
+                with LocalLines("twray generate", progress):
+                    results = dask.compute(*tasks, scheduler="threads", pool=pool)
             finally:
                 pool.shutdown(wait=True, cancel_futures=True)
+        elif hasattr(scheduler, "compute") and hasattr(scheduler, "gather"):  # a distributed.Client
+            futures = scheduler.compute(tasks)
+            follow(scheduler, futures, graph_keys(tasks), "twray generate", progress)
+            results = scheduler.gather(futures)
         else:
             results = dask.compute(*tasks, scheduler=scheduler)
         return int(sum(results))
+
+    def build_pyramid(self) -> int:
+        """Add OME-Zarr multiscale levels ``"1"``, ``"2"``, ... (each half the voxels of the one
+        before along every axis, nearest-voxel: still 1 = wall, 0 = polymer) until the
+        coarsest is at most ``PYRAMID_TOP`` voxels along every axis, so that a viewer opens a
+        large volume at a coarse level first.  Needs every chunk generated.  Returns the number
+        of levels added.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        shapes = []
+        shape = self.shape
+        while max(shape) > PYRAMID_TOP:
+            shape = tuple(math.ceil(n / 2) for n in shape)
+            shapes.append(shape)
+        if not shapes:
+            return 0
+        group = zarr.open_group(self.path, mode="r+")
+        below = self._array
+        for i, shape in enumerate(shapes, start=1):
+            level = group.create_array(str(i), shape=shape, chunks=self.chunks, dtype="uint8",
+                                       fill_value=NOT_GENERATED, dimension_names=list(AXES), overwrite=True)
+
+            def fill(idx, level=level, below=below):
+                sl = tuple(slice(k * c, min((k + 1) * c, n)) for k, c, n in zip(idx, self.chunks, level.shape))
+                level[sl] = below[tuple(slice(2 * s.start, 2 * s.stop, 2) for s in sl)]
+
+            grid = [range(math.ceil(n / c)) for n, c in zip(shape, self.chunks)]
+            with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+                list(pool.map(fill, itertools.product(*grid)))
+            below = level
+        attrs = dict(group.attrs)
+        attrs["ome"] = _ome_attrs(self.grid, self.path.stem, levels=len(shapes))
+        group.attrs.update(attrs)
+        return len(shapes)
 
     def wall_fraction(self) -> float:
         return float(np.mean(self[:, :, :]))

@@ -335,8 +335,9 @@ def describe_plan(plan: Plan) -> list[str]:
     return lines
 
 
-def compute(plans: list[Plan], client, *, progress: bool = False) -> dict:
-    """Run the missing stages of ``plans`` on a ``distributed.Client``.
+def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
+    """Run the missing stages of ``plans`` on a ``distributed.Client`` (``progress``: "bar",
+    "lines" or "off", see :mod:`pipeline.progress`).
 
     Returns counts of what ran: tasks per stage and wood chunks generated.
     """
@@ -345,11 +346,10 @@ def compute(plans: list[Plan], client, *, progress: bool = False) -> dict:
               "summary_tasks": len(graph.summaries), "chunks_generated": 0}
     if not graph.micro and not graph.summaries:
         return report
-    futures = client.compute(graph.micro + graph.summaries)
-    if progress:
-        from distributed import progress as show
+    from ..progress import follow, graph_keys
 
-        show(futures)
+    futures = client.compute(graph.micro + graph.summaries)
+    follow(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress)
     results = client.gather(futures)
     n = len(graph.micro)
     report["chunks_generated"] = int(sum(results[:n]) + sum(r["chunks_generated"] for r in results[n:]))
