@@ -78,6 +78,11 @@ def test_results_carry_their_provenance_and_open_with_plain_xarray_without_warni
         ds = xr.open_zarr(tmp_path / "r" / "p.zarr")
         tz = xr.open_zarr(tmp_path / "t.zarr")
     tn = xr.open_dataset(tmp_path / "t.nc")
+    assert main(["generate", "--size-um", "10,10,10", "--seed", "5", "--out", str(tmp_path / "v.zarr")]) == 0
+    import zarr
+
+    volume = dict(zarr.open_group(tmp_path / "v.zarr", mode="r").attrs)
+    assert all(k in volume for k in PROVENANCE) and json.loads(volume["inputs"])["seed"] == 5
     from pipeline.optics.tracer import TRACER_VERSION
 
     for d in (ds, tz, tn):

@@ -221,6 +221,11 @@ class WoodVolume:
             "phase": "1 = cell wall, 0 = polymer; 255 = chunk not generated yet",
             "chunk_digest": DIGEST_SCHEME,
         }
+        from ..provenance import provenance_attrs
+
+        group.attrs.update(provenance_attrs({"params": params.to_dict(), "seed": int(seed),
+                                             "voxel_um": grid.voxel_um, "origin_um": list(grid.origin_um),
+                                             "shape": list(grid.shape), "chunks": list(chunks)}))
         group.create_array(
             ARRAY, shape=grid.shape, chunks=chunks, dtype="uint8",
             fill_value=NOT_GENERATED, dimension_names=list(AXES),
