@@ -297,6 +297,7 @@ def _add_trace(sub):
     p.add_argument("--out", default=None, help="per-ray dataset (.nc or .zarr)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--yes", action="store_true", help=YES_HELP)
+    p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
     p.set_defaults(func=cmd_trace)
 
 
@@ -367,8 +368,9 @@ def cmd_trace(args) -> int:
     direction = (math.tan(math.radians(incidence[0])), 1.0, math.tan(math.radians(incidence[1])))
     beam = square_beam(rays, beam_um / voxel, centre, seed=seed, direction=direction)
     t0 = time.perf_counter()
-    result = trace_beam(source, beam, n_wall=n_wall, n_poly=n_poly, settings=settings, seed=seed,
-                        n_outside=1.0 if args.incidence_deg is not None else None)
+    result = _trace_in_batches(source, beam, progress_mode(args.quiet), n_wall=n_wall, n_poly=n_poly,
+                               settings=settings, seed=seed,
+                               n_outside=1.0 if args.incidence_deg is not None else None)
     elapsed = time.perf_counter() - t0
     summary = summarize(result, seed=seed)
     summary.update({"refine": result.settings.refine, "traced_voxel_um": voxel,
@@ -390,6 +392,35 @@ def cmd_trace(args) -> int:
               f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}°, "
               f"haze {100 * summary['haze']:.1f} %, {elapsed:.1f} s")
     return 0
+
+
+TRACE_BATCHES = 40  # a long trace reports its progress batch by batch
+
+
+def _trace_in_batches(source, beam, how: str, **kwargs):
+    """``trace_beam`` over consecutive batches of the beam, as Dask tasks on the synchronous
+    scheduler so that its progress shows (every ray is independent of the others: the result
+    equals one call's, tested)."""
+    import dataclasses
+
+    import dask
+    import numpy as np
+
+    from .optics.tracer import Beam, trace_beam
+    from .progress import LocalLines
+
+    n = len(beam.ray_ids)
+    size = max(500, math.ceil(n / TRACE_BATCHES))
+    if how == "off" or n < 2 * size:
+        return trace_beam(source, beam, **kwargs)
+    parts = [dask.delayed(trace_beam, pure=False)(
+        source, Beam(beam.origins[lo:lo + size], beam.direction, beam.ray_ids[lo:lo + size]), **kwargs)
+        for lo in range(0, n, size)]
+    with LocalLines("twray trace", how):
+        parts = dask.compute(*parts, scheduler="sync")
+    merged = {f.name: np.concatenate([getattr(p, f.name) for p in parts])
+              for f in dataclasses.fields(parts[0]) if isinstance(getattr(parts[0], f.name), np.ndarray)}
+    return dataclasses.replace(parts[0], **merged, chunks_loaded=sum(p.chunks_loaded for p in parts))
 
 
 def _check_trace_limits(args, rays, beam_um, voxel, settings, source, centre) -> None:

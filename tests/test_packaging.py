@@ -116,3 +116,19 @@ def test_progress_lines_appear_when_stdout_is_a_pipe_and_not_with_quiet(tmp_path
     assert proc.returncode == 0, proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("twray study: ") and "tasks done" in ln]
     assert lines and lines[-1].split()[2].split("/")[0] == lines[-1].split()[2].split("/")[1], proc.stderr
+
+
+def test_a_long_trace_reports_progress_and_gives_the_numbers_of_one_call(tmp_path):
+    env = {**__import__("os").environ, "TWRAY_PROGRESS_EVERY_S": "0.1"}
+    argv = [sys.executable, "-m", "pipeline", "trace", "--preset", "birch", "--thickness-mm", "0.03",
+            "--delta-ri", "0.02", "--rays", "1200", "--method", "fast", "--json"]
+    batched = subprocess.run(argv, capture_output=True, text=True, env=env)
+    quiet = subprocess.run(argv + ["--quiet"], capture_output=True, text=True, env=env)
+    assert batched.returncode == 0 and quiet.returncode == 0, batched.stderr + quiet.stderr
+    import re
+
+    assert re.search(r"twray trace: (\d+)/\1 tasks done", batched.stderr), batched.stderr
+    assert "tasks done" not in quiet.stderr
+    a, b = json.loads(batched.stdout), json.loads(quiet.stdout)  # batches of 600 rays, or one call
+    for key in ("fwhm_r_deg", "fwhm_l_deg", "haze", "fwhm_r_ci_deg", "interfaces_per_ray", "counts"):
+        assert a[key] == b[key], key
