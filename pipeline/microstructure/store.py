@@ -159,6 +159,10 @@ class WoodChunkStore:
                 "phase": "1 = cell wall, 0 = polymer; 255 = chunk not generated yet",
                 "chunk_digest": DIGEST_SCHEME,
             }
+            from ..provenance import provenance_attrs
+
+            group.attrs.update(provenance_attrs({"params": self.params.to_dict(), "seed": self.seed,
+                                                 "voxel_um": self.voxel_um, "chunks": list(self.chunks)}))
             group.create_array(ARRAY, shape=shape, chunks=self.chunks, dtype="uint8",
                                fill_value=NOT_GENERATED, dimension_names=list(AXES))
             os.rename(staged, self.path)
