@@ -106,7 +106,7 @@ class LocalLines:
             def _posttask(self, key, result, dsk, state, worker_id):
                 self.done += 1
                 now = time.perf_counter()
-                if now - self.last >= every_s:
+                if now - self.last >= every_s and self.done < self.total:  # the last line: _finish
                     self.last = now
                     print(line(label, self.done, self.total, now - self.t0), file=sys.stderr, flush=True)
 
