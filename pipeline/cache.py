@@ -120,9 +120,8 @@ def sweep_leftovers(*folders, deep: bool = False) -> list[Path]:
         folder = Path(folder)
         if not folder.is_dir():
             continue
-        walker = (os.walk(folder) if deep else [(str(folder), [d.name for d in folder.iterdir() if d.is_dir()],
-                                                 [f.name for f in folder.iterdir() if not f.is_dir()])])
-        for dirpath, dirs, files in walker:
+        walker = os.walk(folder)
+        for dirpath, dirs, files in (walker if deep else [next(walker)]):
             for name in list(dirs) + list(files):
                 p = Path(dirpath) / name
                 if is_leftover(p):
@@ -191,10 +190,15 @@ def json_digest(value) -> str:
 UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, TypeError)
 
 
-def _damaged(path: Path, why: str) -> None:
-    if not logging.getLogger().handlers:  # nobody set up logging (a command's worker process)
+def warn(message: str, *args) -> None:
+    """A warning of twray's cache, on stderr even in a worker process where nobody set up logging."""
+    if not logging.getLogger().handlers:
         log_to_stderr()
-    log.warning("cache entry %s is damaged (%s): computing it again", path, why)
+    log.warning(message, *args)
+
+
+def _damaged(path: Path, why: str) -> None:
+    warn("cache entry %s is damaged (%s): computing it again", path, why)
 
 
 def write_npz(path: Path, record: dict, arrays: dict) -> None:

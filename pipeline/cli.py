@@ -162,16 +162,26 @@ def _connect(address=None, scheduler_file=None):
                              f"got {name}={value!r} ({reason})") from None
 
 
-def _client(workers, scheduler):
+@contextlib.contextmanager
+def _generate_client(workers, scheduler):
+    """A client of ``scheduler``, of a local cluster of ``workers`` processes, or None (the
+    thread pool); the client and its local cluster are closed on leaving, workers stopped."""
+    client = cluster = None
     if scheduler:
-        return _connect(scheduler), None
-    if workers is not None:
+        client = _connect(scheduler)
+    elif workers is not None:
         from distributed import Client, LocalCluster
 
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                dashboard_address=None)
-        return Client(cluster), cluster
-    return None, None
+        client = Client(cluster)
+    try:
+        yield client
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
 
 
 def _materialise(args) -> int:
@@ -190,16 +200,10 @@ def _materialise(args) -> int:
     limits.check(est, what=f"`generate --materialise` of {todo} chunks", yes=args.yes, disk_path=out,
                  fit="keep the store lazy: twray generates chunks as they are read")
     workers = _int(args.workers, "workers", 1) if args.workers is not None else None
-    client, cluster = _client(workers, args.scheduler)
     t0 = time.perf_counter()
-    try:
+    with _generate_client(workers, args.scheduler) as client:
         n = vol.generate(scheduler=client, progress=progress_mode(args.quiet))
         vol.build_pyramid()
-    finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
     print(f"{out}: {n} chunks generated in {time.perf_counter() - t0:.1f} s; all "
           f"{len(vol.all_chunks())} chunks are stored")
     return 0
@@ -235,22 +239,18 @@ def cmd_generate(args) -> int:
         print(f"twray generate: estimate {est.text()}", file=sys.stderr)
     out.parent.mkdir(parents=True, exist_ok=True)
     staged = staged_path(out)
-    client = cluster = None
     t0 = time.perf_counter()
     try:
         vol = WoodVolume.create(staged, params, grid, seed=seed, chunks=chunks)
         n = 0
         if not args.lazy:
-            client, cluster = _client(workers, args.scheduler)
-            n = vol.generate(scheduler=client, progress=progress_mode(args.quiet))
-            vol.build_pyramid()
+            # The workers stop on leaving, before the staged store is removed (they would
+            # write into it again).
+            with _generate_client(workers, args.scheduler) as client:
+                n = vol.generate(scheduler=client, progress=progress_mode(args.quiet))
+                vol.build_pyramid()
         publish(staged, out, args.overwrite)
     finally:
-        # Workers stop before the staged store is removed (they would write into it again).
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
         shutil.rmtree(staged, ignore_errors=True)
     dt = time.perf_counter() - t0
     msg = (f"{out}: {params.species}, shape {grid.shape} (R, T, L) at {grid.voxel_um:g} µm, "
@@ -828,9 +828,9 @@ def cmd_cache(args) -> int:
                 print(json.dumps({"stage": e.stage, "key": e.key, "bytes": e.size, "path": str(e.path),
                                   "about": e.about}))
             else:
-                print(f"{e.stage:8s} {e.key or '-':24s} {inventory.human(e.size):>9s}  {e.about or e.path.name}")
+                print(f"{e.stage:8s} {e.key or '-':24s} {limits.size(e.size):>9s}  {e.about or e.path.name}")
         total = sum(e.size for e in entries)
-        print(f"{len(entries)} entries, {inventory.human(total)} in {cache}", file=sys.stderr)
+        print(f"{len(entries)} entries, {limits.size(total)} in {cache}", file=sys.stderr)
         return 0
     if args.action == "verify":
         damaged = 0
@@ -855,11 +855,11 @@ def cmd_cache(args) -> int:
             print(f"left alone {e.path} (not a twray cache entry)")
     drop = [e for e in entries if e.stage == "leftover" or (e.stage in inventory.STAGES and e.key not in keep)]
     for e in drop:
-        print(f"{'would remove' if args.dry_run else 'removed'} {e.path} ({inventory.human(e.size)})")
+        print(f"{'would remove' if args.dry_run else 'removed'} {e.path} ({limits.size(e.size)})")
         if not args.dry_run:
             inventory.remove(e.path)
     kept = len(entries) - len(drop)
-    print(f"{len(drop)} entries ({inventory.human(sum(e.size for e in drop))}) "
+    print(f"{len(drop)} entries ({limits.size(sum(e.size for e in drop))}) "
           f"{'to remove' if args.dry_run else 'removed'}, {kept} kept", file=sys.stderr)
     return 0
 

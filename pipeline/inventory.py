@@ -186,11 +186,3 @@ def keys_in_use(files, scales, cache) -> set:
             keys.update(s.key for s in plan.shards)
             keys.update(s.key for s in plan.summaries)
     return keys
-
-
-def human(n: int) -> str:
-    for unit in ("B", "kB", "MB", "GB", "TB"):
-        if n < 1000 or unit == "TB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1000
-    return str(n)

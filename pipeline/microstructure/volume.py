@@ -14,7 +14,6 @@ import errno
 import hashlib
 import itertools
 import json
-import logging
 import math
 import os
 import shutil
@@ -28,7 +27,7 @@ import zarr
 from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
-from ..cache import log_to_stderr, temp_name
+from ..cache import temp_name, warn
 from ..params import Grid, ParameterError, WoodParams, validate
 from .model import generate_block
 
@@ -37,8 +36,6 @@ NOT_GENERATED = 255
 AXES = ("r", "t", "l")
 PUBLISH_TRIES = 50
 PYRAMID_TOP = 512  # generated volumes get coarser levels until this many voxels along every axis
-
-log = logging.getLogger("twray.cache")
 
 
 def _ome_attrs(grid: Grid, name: str, levels: int = 0) -> dict:
@@ -143,9 +140,7 @@ class ChunkFiles:
         """Chunk ``d`` (shape ``chunks``), or None when it has no file or a damaged one (logged)."""
         data, why = self.check(d)
         if why:
-            if not logging.getLogger().handlers:  # nobody set up logging (a command's worker process)
-                log_to_stderr()
-            log.warning("wood chunk %s is damaged (%s): generating it again", self.path(d), why)
+            warn("wood chunk %s is damaged (%s): generating it again", self.path(d), why)
         return data
 
     def write(self, d, data: np.ndarray) -> None:

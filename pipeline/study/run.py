@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..cache import (DamagedEntry, cache_key, check_json, check_npz, dataset_digest, log, read_json, read_npz,
-                     sound, write_json, write_npz)
+from ..cache import (DamagedEntry, cache_key, check_json, check_npz, dataset_digest, read_json, read_npz,
+                     sound, warn, write_json, write_npz)
 from ..microstructure.store import WoodChunkStore
 from ..optics.tracer import TRACER_VERSION
 from .spec import Scene, Study, scene_record
@@ -483,7 +483,7 @@ def _is_current(out: Path, provenance: dict) -> bool:
     except Exception:  # noqa: BLE001 - anything unreadable is rebuilt
         return False
     if not current:
-        log.warning("result %s is damaged (its values do not match their digest): writing it again", out)
+        warn("result %s is damaged (its values do not match their digest): writing it again", out)
     return current
 
 
