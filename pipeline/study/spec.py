@@ -41,7 +41,7 @@ SCALES = {
 
 _TOP = {"title", "description", "preset", "wood", "seed", "thickness_mm", "delta_ri",
         "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary"}
-_TRACE = {"method", "exit", "fresnel", "refine"}
+_TRACE = {"method", "exit", "fresnel", "refine", "step_vox"}
 _SCENE_VARIABLES = {
     # name: (dimension, units, long_name)
     "thickness_mm": ("thickness", "mm", "TW sample thickness along T"),
@@ -172,6 +172,11 @@ def load_study(path, *, scale: str = "paper") -> Study:
         if isinstance(refine, bool) or not isinstance(refine, int) or not 1 <= refine <= 8:
             fail(("trace", "refine"), f"`trace.refine` must be an integer in [1, 8], got {refine!r}")
         changes["refine"] = refine
+    if "step_vox" in trace:
+        step = trace["step_vox"]
+        if isinstance(step, bool) or not isinstance(step, (int, float)) or not math.isfinite(step):
+            fail(("trace", "step_vox"), f"`trace.step_vox` must be a number of voxels, got {step!r}")
+        changes["step_vox"] = float(step)
     try:
         settings = settings_for(method, exit=trace.get("exit", "internal"),
                                 fresnel=bool(trace.get("fresnel", False)), **changes)
@@ -229,6 +234,13 @@ def load_study(path, *, scale: str = "paper") -> Study:
         if voxel_um > params.wall_thickness_um / 2:
             fail(("voxel_um",), f"`voxel_um` must be <= wall_thickness_um/2 = "
                                 f"{params.wall_thickness_um / 2:g} µm, got voxel_um={voxel_um:g}")
+        step_um = settings.step_vox * traced_voxel_um(voxel_um, settings)
+        if settings.method == "paper" and step_um >= params.wall_thickness_um:
+            # A step as wide as the wall jumps over walls (SPEC.md §4: the paper's step is half a wall).
+            fail(("trace", "step_vox"), f"`trace.step_vox` must be smaller than the wall "
+                                        f"({params.wall_thickness_um:g} µm = "
+                                        f"{params.wall_thickness_um / traced_voxel_um(voxel_um, settings):g} "
+                                        f"voxels), got step_vox={settings.step_vox:g}")
         if thickness_um < voxel_um:
             fail(("thickness_mm",), f"`thickness_mm` must be at least one voxel at scale {scale}, "
                                     f"got {thickness_um:g} µm")
