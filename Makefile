@@ -9,7 +9,7 @@ SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
-.PHONY: install wheel-check demo test bench bench-generate bench-trace bench-study bench-camera bench-accuracy clean table1 camera $(STUDIES)
+.PHONY: install wheel-check demo test bench bench-generate bench-trace bench-study bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
 
 install: $(STAMP)
 
@@ -45,6 +45,7 @@ test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 bench: bench-generate bench-trace bench-study bench-camera bench-accuracy
+	$(BIN)/python benchmarks/bench_md.py --bench results/bench.json --out results/BENCH.md
 
 bench-generate: install
 	$(BIN)/python benchmarks/bench_generate.py --out results/bench.json
@@ -64,3 +65,7 @@ bench-camera: install
 ## Every method against exact optics of many thin walls -> results/accuracy.json and results/accuracy.md.
 bench-accuracy: install
 	$(BIN)/python benchmarks/bench_accuracy.py --out results/accuracy.json
+
+## Speed against accuracy of every setting -> results/tradeoff.zarr, results/TRADEOFF.md, results/figures/tradeoff.png.
+tradeoff: install
+	$(BIN)/python benchmarks/bench_tradeoff.py --results results

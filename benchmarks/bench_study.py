@@ -5,7 +5,11 @@ Writes the "study" section of results/bench.json:
   again unchanged (the warm run computes nothing), as one ``twray study`` call;
 - paper_scene: a slice of one paper-scale scene (1 mm of birch, ΔRI = 0.03,
   accurate), traced in this process, split into wood generation and tracing,
-  with the wood chunks it needed per ray.
+  with the wood chunks it needed per ray;
+- workers: Table 1 at --scale small, cold, on 1 worker of 1 thread, 1 worker
+  of 2 threads and 2 workers of 1 thread;
+- thickness: one cold trace (accurate, 200 rays, birch, ΔRI 0.01) through
+  0.25, 0.5 and 1 mm: seconds, chunks generated, interfaces per ray.
 """
 
 from __future__ import annotations
@@ -28,10 +32,40 @@ from pipeline.params import build_params
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def table1_small(tmp: Path) -> dict:
+def _table1_cmd(cache: Path, results: Path, *extra) -> list:
     files = sorted(str(p) for p in (ROOT / "studies" / "table1").glob("*.yaml"))
-    cmd = [sys.executable, "-m", "pipeline", "study", *files, "--scale", "small",
-           "--cache", str(tmp / "cache"), "--results", str(tmp / "results")]
+    return [sys.executable, "-m", "pipeline", "study", *files, "--scale", "small",
+            "--cache", str(cache), "--results", str(results), "--quiet", *extra]
+
+
+def workers(tmp: Path) -> dict:
+    out = {}
+    for w, t in ((1, 1), (1, 2), (2, 1)):
+        name = f"{w}_workers_{t}_threads"
+        t0 = time.perf_counter()
+        subprocess.run(_table1_cmd(tmp / f"cache-{name}", tmp / f"results-{name}", "--workers", str(w),
+                                   "--threads", str(t)), check=True, capture_output=True)
+        out[name + "_s"] = round(time.perf_counter() - t0, 1)
+    out["speedup_2_cores"] = round(out["1_workers_1_threads_s"] / min(out["1_workers_2_threads_s"],
+                                                                      out["2_workers_1_threads_s"]), 2)
+    return out
+
+
+def thickness() -> dict:
+    out = {}
+    params = build_params("birch")
+    for mm in (0.25, 0.5, 1.0):
+        source = WoodSource(params, thickness_um=1000.0 * mm, voxel_um=0.25, seed=7)
+        beam = square_beam(200, 150 / 0.25, seed=7)
+        t0 = time.perf_counter()
+        r = trace_beam(source, beam, n_wall=1.50, n_poly=1.49, settings=settings_for("accurate", refine=1), seed=7)
+        out[f"{mm:g}_mm"] = {"seconds": round(time.perf_counter() - t0, 2), "chunks_generated": len(source.distinct),
+                             "interfaces_per_ray": round(float(r.events.mean()), 1)}
+    return out
+
+
+def table1_small(tmp: Path) -> dict:
+    cmd = _table1_cmd(tmp / "cache", tmp / "results")
     out = {}
     for run in ("cold", "warm"):
         t0 = time.perf_counter()
@@ -75,6 +109,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         result = {"table1_small": table1_small(Path(tmp)),
                   "paper_scene": paper_scene(Path(tmp), args.rays),
+                  "workers": workers(Path(tmp)),
+                  "thickness": thickness(),
                   "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
     write_section(args.out, "study", result)
 

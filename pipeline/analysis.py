@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import optimize
 
@@ -75,6 +78,48 @@ def haze(directions: np.ndarray, incident=(0.0, 1.0, 0.0)) -> float:
     return float(np.mean(np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))) > HAZE_ANGLE_DEG))
 
 
+def haze_ci(haze_fraction: float, n: int, *, level: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a haze measured on ``n`` rays (a binomial proportion).
+
+    Unlike the normal approximation it stays inside [0, 1] and is not empty at
+    a haze of 0 or 1; with no ray it is (NaN, NaN).
+    """
+    from scipy.stats import norm
+
+    if n < 1 or not math.isfinite(haze_fraction):
+        return float("nan"), float("nan")
+    z = float(norm.ppf(0.5 + level / 2.0))
+    centre = (haze_fraction + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(haze_fraction * (1 - haze_fraction) / n + z * z / (4 * n * n))
+    return max(0.0, min(haze_fraction, centre - half)), min(1.0, max(haze_fraction, centre + half))
+
+
+@dataclass(frozen=True)
+class Target:
+    """A precision to trace to: the 95 % CI half-width of haze (a fraction) and, when
+    given, of FWHM_R and FWHM_L [degree]; rays are doubled up to ``max_rays``."""
+
+    haze: float | None = None
+    fwhm_deg: float | None = None
+    max_rays: int = 64_000
+
+    def met(self, summary: dict) -> bool:
+        """Whether every asked-for interval of ``summary`` is as narrow as the target."""
+        def half(ci):
+            lo, hi = ci
+            return (hi - lo) / 2.0 if math.isfinite(lo) and math.isfinite(hi) else math.inf
+
+        ok = True
+        if self.haze is not None:
+            ok &= half(summary["haze_ci"]) <= self.haze
+        if self.fwhm_deg is not None:
+            ok &= half(summary["fwhm_r_ci_deg"]) <= self.fwhm_deg and half(summary["fwhm_l_ci_deg"]) <= self.fwhm_deg
+        return bool(ok)
+
+    def to_dict(self) -> dict:
+        return {"haze": self.haze, "fwhm_deg": self.fwhm_deg, "max_rays": self.max_rays}
+
+
 def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
     """FWHM_R, FWHM_L (with CIs), haze and counts of a RayResult."""
     t = result.transmitted
@@ -82,13 +127,15 @@ def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
     lo_r, hi_r = fwhm_ci(tr, n_boot=n_boot, seed=seed)
     lo_l, hi_l = fwhm_ci(tl, n_boot=n_boot, seed=seed + 1)
     counts = result.counts()
+    h = haze(result.exit_direction[t], (0.0, 1.0, 0.0) if result.incident is None else result.incident[t])
+    n_haze = int(t.sum()) if result.incident is None else int((t & ~np.isnan(result.incident).any(axis=1)).sum())
     return {
         "fwhm_r_deg": fwhm(tr) if tr.size else float("nan"),
         "fwhm_r_ci_deg": [lo_r, hi_r],
         "fwhm_l_deg": fwhm(tl) if tl.size else float("nan"),
         "fwhm_l_ci_deg": [lo_l, hi_l],
-        "haze": haze(result.exit_direction[t],
-                     (0.0, 1.0, 0.0) if result.incident is None else result.incident[t]),
+        "haze": h,
+        "haze_ci": list(haze_ci(h, n_haze)),
         "n_rays": int(result.status.size),
         "n_transmitted": counts["transmitted"],
         "n_lost": int(result.status.size - counts["transmitted"]),

@@ -294,6 +294,12 @@ def _add_trace(sub):
                         "(default: the method's, 2 for accurate, 1 otherwise; a --volume is traced "
                         "on its own voxels)")
     p.add_argument("--seed", default="1", help="non-negative integer seed of the wood and the beam (default 1)")
+    p.add_argument("--target-ci", default=None, metavar="HAZE",
+                   help="trace until the 95 %% CI half-width of haze is at most HAZE (a fraction, e.g. 0.01): "
+                        "--rays is the first batch, doubled up to --max-rays")
+    p.add_argument("--target-ci-fwhm", default=None, metavar="DEG",
+                   help="with or without --target-ci: also until the CI half-widths of FWHM_R and FWHM_L are at most DEG")
+    p.add_argument("--max-rays", default="64000", help="most rays a --target-ci trace uses (default 64000)")
     p.add_argument("--out", default=None, help="per-ray dataset (.nc or .zarr)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--yes", action="store_true", help=YES_HELP)
@@ -306,7 +312,7 @@ def cmd_trace(args) -> int:
 
     from .analysis import summarize
     from .optics.sources import ArraySource, WoodSource, load_volume
-    from .optics.tracer import settings_for, square_beam, trace_beam, traced_voxel_um
+    from .optics.tracer import Beam, settings_for, square_beam, traced_voxel_um
 
     voxel = _float(args.voxel_um, "voxel_um")
     if not voxel > 0:
@@ -321,6 +327,7 @@ def cmd_trace(args) -> int:
         raise ParameterError(f"`delta_ri` and `ri_polymer` must give indices in [1, 3], got "
                              f"polymer {n_poly:g} and wall {n_wall:g}")
     rays = _int(args.rays, "rays", 1)
+    target = _trace_target(args, rays)
     beam_um = _float(args.beam_um, "beam_um")
     if not beam_um > 0:
         raise ParameterError(f"`beam_um` must be > 0 µm, got beam_um={beam_um:g}")
@@ -363,16 +370,29 @@ def cmd_trace(args) -> int:
     if settings.method == "paper" and wall_um is not None and settings.step_vox * voxel >= wall_um:
         raise ParameterError(f"`step_vox` must be smaller than the wall ({wall_um:g} µm = "
                              f"{wall_um / voxel:g} voxels), got step_vox={settings.step_vox:g}")
-    _check_trace_limits(args, rays, beam_um, voxel, settings, source, centre)
+    _check_trace_limits(args, rays if target is None else target.max_rays, beam_um, voxel, settings, source, centre)
     incidence = _incidence(args.incidence_deg)
     direction = (math.tan(math.radians(incidence[0])), 1.0, math.tan(math.radians(incidence[1])))
-    beam = square_beam(rays, beam_um / voxel, centre, seed=seed, direction=direction)
     t0 = time.perf_counter()
-    result = _trace_in_batches(source, beam, progress_mode(args.quiet), n_wall=n_wall, n_poly=n_poly,
-                               settings=settings, seed=seed,
-                               n_outside=1.0 if args.incidence_deg is not None else None)
-    elapsed = time.perf_counter() - t0
+    kwargs = dict(n_wall=n_wall, n_poly=n_poly, settings=settings, seed=seed,
+                  n_outside=1.0 if args.incidence_deg is not None else None)
+    beam = square_beam(rays, beam_um / voxel, centre, seed=seed, direction=direction)
+    result = _trace_in_batches(source, beam, progress_mode(args.quiet), **kwargs)
     summary = summarize(result, seed=seed)
+    while target is not None and not target.met(summary) and len(result.status) < target.max_rays:
+        # The next rays of the same beam (each ray's position is a hash of the seed and its
+        # index): the result equals one trace of that many rays.
+        n = min(2 * len(result.status), target.max_rays)
+        more = square_beam(n, beam_um / voxel, centre, seed=seed, direction=direction)
+        lo = len(result.status)
+        part = _trace_in_batches(source, Beam(more.origins[lo:], more.direction, more.ray_ids[lo:]),
+                                 progress_mode(args.quiet), **kwargs)
+        result = _concatenate([result, part])
+        summary = summarize(result, seed=seed)
+    elapsed = time.perf_counter() - t0
+    if target is not None:
+        summary["target_ci"] = target.to_dict()
+        summary["target_ci_met"] = target.met(summary)
     summary.update({"refine": result.settings.refine, "traced_voxel_um": voxel,
                     "delta_ri": dri, "ri_polymer": n_poly, "incidence_deg": list(incidence),
                     "seconds": elapsed, "chunks_loaded": result.chunks_loaded})
@@ -387,11 +407,33 @@ def cmd_trace(args) -> int:
     if args.json:
         print(strict_json(summary))
     else:
+        lo, hi = summary["haze_ci"]
+        met = "" if target is None else (
+            "; target_ci met" if summary["target_ci_met"] else f"; target_ci NOT met at max_rays {target.max_rays}")
         print(f"{summary['n_transmitted']}/{summary['n_rays']} transmitted "
               f"(method {summary['method']}, exit {summary['exit']}): "
               f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}°, "
-              f"haze {100 * summary['haze']:.1f} %, {elapsed:.1f} s")
+              f"haze {100 * summary['haze']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}], {elapsed:.1f} s{met}")
     return 0
+
+
+def _trace_target(args, rays: int):
+    """The precision ``--target-ci``/``--target-ci-fwhm`` ask for (None: trace ``--rays``)."""
+    from .analysis import Target
+
+    if args.target_ci is None and args.target_ci_fwhm is None:
+        return None
+    haze = fwhm = None
+    if args.target_ci is not None:
+        haze = _float(args.target_ci, "target_ci")
+        if not 0 < haze <= 0.5:
+            raise ParameterError(f"`target_ci` must be a haze half-width in (0, 0.5], got target_ci={haze:g}")
+    if args.target_ci_fwhm is not None:
+        fwhm = _float(args.target_ci_fwhm, "target_ci_fwhm")
+        if not fwhm > 0:
+            raise ParameterError(f"`target_ci_fwhm` must be > 0 degree, got target_ci_fwhm={fwhm:g}")
+    cap = _int(args.max_rays, "max_rays", rays)
+    return Target(haze=haze, fwhm_deg=fwhm, max_rays=cap)
 
 
 TRACE_BATCHES = 40  # a long trace reports its progress batch by batch
@@ -418,6 +460,15 @@ def _trace_in_batches(source, beam, how: str, **kwargs):
         for lo in range(0, n, size)]
     with LocalLines("twray trace", how):
         parts = dask.compute(*parts, scheduler="sync")
+    return _concatenate(parts)
+
+
+def _concatenate(parts):
+    """RayResults of consecutive parts of one beam as one."""
+    import dataclasses
+
+    import numpy as np
+
     merged = {f.name: np.concatenate([getattr(p, f.name) for p in parts])
               for f in dataclasses.fields(parts[0]) if isinstance(getattr(parts[0], f.name), np.ndarray)}
     return dataclasses.replace(parts[0], **merged, chunks_loaded=sum(p.chunks_loaded for p in parts))
@@ -645,7 +696,7 @@ def _cluster(args, command: str):
 
 
 def cmd_study(args) -> int:
-    from .study.run import compute, describe_plan, plan_study, report_table, summary_rows, write_dataset
+    from .study.run import compute, describe_plan, plan_study, report_table, summary_rows, widen, write_dataset
     from .study.spec import load_study
 
     shard_rays = _int(args.shard_rays, "shard_rays", 1)
@@ -676,18 +727,37 @@ def cmd_study(args) -> int:
             print("\n".join(describe_plan(plan)))
         return 0
     limits.check(est, what="`study`", yes=args.yes, disk_path=args.cache, fit=fit)
-    if not all(p.up_to_date for p in plans):
-        with _cluster(args, "study") as client:
-            compute(plans, client, progress=progress_mode(args.quiet))
-        plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
+    with contextlib.ExitStack() as stack:
+        client = None
+        while True:
+            if not all(p.up_to_date for p in plans):
+                if client is None:
+                    client = stack.enter_context(_cluster(args, "study"))
+                compute(plans, client, progress=progress_mode(args.quiet))
+                plans = [plan_study(p.study, args.cache, shard_rays=shard_rays) for p in plans]
+            # A study with a `target_ci` is traced again with twice the rays until it is met.
+            wider = [widen(p) for p in plans]
+            if not any(wider):
+                break
+            for st in wider:
+                if st is not None:
+                    print(f"twray study: {st.name}: an interval is wider than target_ci; "
+                          f"tracing {st.scenes[0].rays} rays", file=sys.stderr)
+            plans = [plan_study(w, args.cache, shard_rays=shard_rays) if w is not None else p
+                     for w, p in zip(wider, plans)]
     for plan in plans:
         out = write_dataset(plan, args.results)
         st = plan.study
+        target = st.scenes[0].target
+        met = "" if target is None else (
+            ", target_ci met" if all(target.met(r) for r in summary_rows(plan)) else
+            f", target_ci NOT met at max_rays {target.max_rays}")
         print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays, "
-              f"{st.scenes[0].settings.method})")
+              f"{st.scenes[0].settings.method}{met})")
         for row in summary_rows(plan):
             print(f"  {st.dimension}={row['value']}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
-                  f"FWHM_L {row['fwhm_l_deg']:.2f}°, haze {100 * row['haze']:.1f} %, "
+                  f"FWHM_L {row['fwhm_l_deg']:.2f}°, haze {100 * row['haze']:.1f} % "
+                  f"[{100 * row['haze_ci'][0]:.1f}, {100 * row['haze_ci'][1]:.1f}], "
                   f"{row['n_transmitted']}/{row['n_rays']} transmitted")
     if report is not None:
         from .cache import atomic_write

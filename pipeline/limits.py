@@ -12,6 +12,7 @@ needs.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import shutil
@@ -126,6 +127,8 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
     est = Estimate()
     woods = {}
     for s in scenes:
+        if s.target is not None:  # traced to a precision: at most its cap of rays
+            s = dataclasses.replace(s, rays=s.target.max_rays)
         voxel = s.trace_voxel_um
         key = (repr(s.wood), s.seed, voxel)
         woods[key] = max(woods.get(key, 0.0), wood_voxels(s.beam_um, s.thickness_um, voxel))

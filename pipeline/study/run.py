@@ -44,7 +44,9 @@ from ..optics.tracer import TRACER_VERSION
 from .spec import Scene, Study, scene_record
 
 # Version 2 of each stage: entries verified (key and digest of the content).
-VERSIONS = {"micro": "2", "rays": "2", "summary": "2"}
+# Rays 3: a shard's key no longer names the beam's total rays (a shard is the same rays whatever
+# the total, so a study traced to a target reuses its earlier shards).  Summary 3: haze CI.
+VERSIONS = {"micro": "2", "rays": "3", "summary": "3"}
 CHUNKS = (64, 64, 64)
 N_BOOT = 200
 COLUMN_BATCH = 16  # chunks per microstructure task
@@ -165,7 +167,7 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
                 "thickness_vox": n_t,
                 "n_wall": scene.n_wall, "n_poly": scene.ri_polymer,
                 "settings": dataclasses.asdict(scene.settings),
-                "beam": {"rays": scene.rays, "width_vox": width, "centre_vox": [0.0, 0.0],
+                "beam": {"width_vox": width, "centre_vox": [0.0, 0.0],
                          "seed": scene.seed}}
         keys = []
         for lo in range(0, scene.rays, shard_rays):
@@ -356,6 +358,24 @@ def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
     return report
 
 
+def widen(plan: Plan) -> Study | None:
+    """The study of ``plan`` with twice the rays (at most its target's ``max_rays``) when a
+    value's interval is wider than the target; None when every value meets it, or the study
+    has no target or is at its cap.  Every value gets the same rays (the Dataset's ``ray``
+    dimension), and the shards already traced are reused: a shard's rays do not depend on
+    the total."""
+    from .spec import with_rays
+
+    st = plan.study
+    target = st.scenes[0].target
+    rays = st.scenes[0].rays
+    if target is None or rays >= target.max_rays:
+        return None
+    if all(target.met(row) for row in summary_rows(plan)):
+        return None
+    return with_rays(st, min(2 * rays, target.max_rays))
+
+
 def summary_rows(plan: Plan) -> list[dict]:
     """The cached summary of each value, with the value, in the study's order."""
     coord = plan.study.coordinate()
@@ -371,7 +391,7 @@ def _summary(summ: Summary) -> dict:
 
 def report_table(plans: list[Plan]) -> str:
     """A Markdown table of FWHM_R, FWHM_L and haze for every value of every study."""
-    lines = ["| study | parameter | value | FWHM_R (°) [95 % CI] | FWHM_L (°) [95 % CI] | haze (%) "
+    lines = ["| study | parameter | value | FWHM_R (°) [95 % CI] | FWHM_L (°) [95 % CI] | haze (%) [95 % CI] "
              "| transmitted |", "|---|---|---|---|---|---|---|"]
     for plan in plans:
         st = plan.study
@@ -380,7 +400,8 @@ def report_table(plans: list[Plan]) -> str:
             lines.append(
                 f"| {st.name} | {st.dimension} | {row['value']} | {row['fwhm_r_deg']:.2f} "
                 f"[{r[0]:.2f}, {r[1]:.2f}] | {row['fwhm_l_deg']:.2f} [{lo[0]:.2f}, {lo[1]:.2f}] | "
-                f"{100 * row['haze']:.1f} | {row['n_transmitted']}/{row['n_rays']} |")
+                f"{100 * row['haze']:.1f} [{100 * row['haze_ci'][0]:.1f}, {100 * row['haze_ci'][1]:.1f}] | "
+                f"{row['n_transmitted']}/{row['n_rays']} |")
     s0 = plans[0].study.scenes[0]
     lines.append("")
     lines.append(f"twray {__version__}, scale {plans[0].study.scale}, {s0.rays} rays, method "
@@ -407,6 +428,8 @@ def study_dataset(plan: Plan):
         "FWHM_R": (lambda s: s["fwhm_r_deg"], "FWHM of the Lorentz fit to theta_R", "degree"),
         "FWHM_L": (lambda s: s["fwhm_l_deg"], "FWHM of the Lorentz fit to theta_L", "degree"),
         "haze": (lambda s: s["haze"], "fraction of transmitted rays deviating more than 2.5 degree", "1"),
+        "haze_ci_lower": (lambda s: s["haze_ci"][0], "Wilson 95 % interval of haze, lower", "1"),
+        "haze_ci_upper": (lambda s: s["haze_ci"][1], "Wilson 95 % interval of haze, upper", "1"),
         "FWHM_R_ci_lower": (lambda s: s["fwhm_r_ci_deg"][0], "bootstrap 95 % interval of FWHM_R, lower", "degree"),
         "FWHM_R_ci_upper": (lambda s: s["fwhm_r_ci_deg"][1], "bootstrap 95 % interval of FWHM_R, upper", "degree"),
         "FWHM_L_ci_lower": (lambda s: s["fwhm_l_ci_deg"][0], "bootstrap 95 % interval of FWHM_L, lower", "degree"),
@@ -457,7 +480,15 @@ def study_dataset(plan: Plan):
     ds.attrs.update(provenance_attrs({"study": st.name, "scale": st.scale,
                                       "scenes": [scene_record(s) for s in st.scenes]}))
     link_intervals(ds, 0.95, N_BOOT)
+    for bound in ("haze_ci_lower", "haze_ci_upper"):
+        del ds[bound].attrs["bootstrap_resamples"]
+        ds[bound].attrs["interval"] = "Wilson score (binomial)"
     ds["haze"].attrs["threshold_deg"] = HAZE_ANGLE_DEG
+    target = st.scenes[0].target
+    ds.attrs["rays"] = n_rays
+    if target is not None:
+        ds.attrs["target_ci"] = json.dumps(target.to_dict())
+        ds.attrs["target_ci_met"] = int(all(target.met(s) for s, _ in rows))
     return ds
 
 

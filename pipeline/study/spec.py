@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ..analysis import Target
 from ..optics.tracer import PRESETS, TraceSettings, settings_for, traced_voxel_um
 from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, load_preset,
                       read_yaml_file, validate, yaml_locator)
@@ -40,7 +41,7 @@ SCALES = {
 }
 
 _TOP = {"title", "description", "preset", "wood", "seed", "thickness_mm", "delta_ri",
-        "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary"}
+        "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary", "target_ci"}
 _TRACE = {"method", "exit", "fresnel", "refine", "step_vox"}
 _SCENE_VARIABLES = {
     # name: (dimension, units, long_name)
@@ -64,6 +65,7 @@ class Scene:
     rays: int
     beam_um: float
     settings: TraceSettings
+    target: Target | None = None  # trace to this precision: `rays` is then the first batch
 
     @property
     def n_wall(self) -> float:
@@ -197,6 +199,7 @@ def load_study(path, *, scale: str = "paper") -> Study:
 
     f = SCALES[scale]
     n_rays = max(1, int(round(rays * f["rays"])))
+    target = _target(data.get("target_ci"), n_rays, f["rays"], fail) if "target_ci" in data else None
     scenes = []
     seen = set()
     for v in values:
@@ -247,7 +250,7 @@ def load_study(path, *, scale: str = "paper") -> Study:
         scenes.append(Scene(value=v, wood=params, seed=int(seed), voxel_um=voxel_um,
                             thickness_um=thickness_um, ri_polymer=n_poly,
                             delta_ri=scene_vars["delta_ri"], rays=n_rays,
-                            beam_um=beam_um * f["beam"], settings=settings))
+                            beam_um=beam_um * f["beam"], settings=settings, target=target))
 
     if parameter in _SCENE_VARIABLES:
         dimension, units, long_name = _SCENE_VARIABLES[parameter]
@@ -264,6 +267,34 @@ def load_study(path, *, scale: str = "paper") -> Study:
     return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
                  parameter=parameter, dimension=dimension, units=units, long_name=long_name,
                  scenes=tuple(scenes))
+
+
+def _target(value, n_rays: int, factor: float, fail) -> Target:
+    """``target_ci``: a haze half-width, or {haze, fwhm_deg, max_rays} (max_rays scaled as rays)."""
+    if not isinstance(value, dict):
+        value = {"haze": value}
+    for k in value:
+        if k not in ("haze", "fwhm_deg", "max_rays"):
+            fail(("target_ci", k), f"unknown key `target_ci.{k}` (known: fwhm_deg, haze, max_rays)")
+    out = {}
+    for k, rule, ok in (("haze", "in (0, 0.5]", lambda v: 0 < v <= 0.5), ("fwhm_deg", "> 0 degree", lambda v: v > 0)):
+        if k in value and value[k] is not None:
+            v = value[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not ok(v):
+                fail(("target_ci",), f"`target_ci.{k}` must be a number {rule}, got {v!r}")
+            out[k] = float(v)
+    if not out:
+        fail(("target_ci",), "`target_ci` must give `haze` or `fwhm_deg` (a 95 % CI half-width)")
+    cap = value.get("max_rays", Target.max_rays)
+    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
+        fail(("target_ci",), f"`target_ci.max_rays` must be a positive integer, got {cap!r}")
+    cap = max(n_rays, int(round(cap * factor)))
+    return Target(haze=out.get("haze"), fwhm_deg=out.get("fwhm_deg"), max_rays=cap)
+
+
+def with_rays(study: Study, rays: int) -> Study:
+    """``study`` with every scene traced with ``rays`` rays."""
+    return dataclasses.replace(study, scenes=tuple(dataclasses.replace(s, rays=rays) for s in study.scenes))
 
 
 def scene_record(scene: Scene) -> dict:
