@@ -54,12 +54,18 @@ def render(doc: dict) -> str:
             if r:
                 md.append(f"| {name} | {r['rays']} | {r['interfaces_per_s']:,.0f} | {r['us_per_interface']:.2f} | "
                           f"{paper / r['us_per_interface']:.0f}× |")
-        lazy = t.get("lazy_1_5mm")
-        if lazy:
-            md += ["", f"Cold, wood generated as the rays reach it: {lazy['rays']} rays, `{lazy['method']}`, "
-                   f"{lazy['thickness_mm']} mm: {lazy['seconds']:.1f} s, {lazy['chunks_generated']} chunks of "
-                   f"{'x'.join(map(str, lazy['chunk_shape']))} ({100 * lazy['fraction_of_whole_sample']:.1f} % of a "
-                   f"1.5 × 1.5 × 1 mm sample), peak RSS {lazy['peak_rss_mb']:.0f} MiB."]
+        for key in ("lazy_1_5mm", "lazy_1_5mm_2_threads"):
+            lazy = t.get(key)
+            if not lazy:
+                continue
+            read = (f" It read {lazy['voxels_read']:.2g} voxels (paths and normal neighbourhoods, counted with "
+                    f"repeats) of the {lazy['voxels_generated']:.2g} it generated."
+                    if "voxels_read" in lazy else "")
+            md += ["", f"Cold, wood generated as the rays reach it on {lazy.get('threads', 1)} thread(s): "
+                   f"{lazy['rays']} rays, `{lazy['method']}`, {lazy['thickness_mm']} mm: {lazy['seconds']:.1f} s, "
+                   f"{lazy['chunks_generated']} chunks of {'x'.join(map(str, lazy['chunk_shape']))} "
+                   f"({100 * lazy['fraction_of_whole_sample']:.1f} % of a 1.5 × 1.5 × 1 mm sample), peak RSS "
+                   f"{lazy['peak_rss_mb']:.0f} MiB.{read}"]
     else:
         md.append("Not run (`make bench-trace`).")
     s = doc.get("study")

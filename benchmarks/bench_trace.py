@@ -16,7 +16,8 @@ Writes the "trace" section of results/bench.json:
   points (paper's scikit-learn SVM on its 6³ box against fast's and accurate's
   Gaussian windows with their Newton steps), without traversal or loading;
 - lazy_1_5mm: 1000 rays through 1.5 mm of lazily generated birch: time,
-  peak RSS, chunks generated against the chunks of the whole paper sample.
+  peak RSS, chunks generated against the chunks of the whole paper sample,
+  voxels generated against voxels read; again generating on 2 threads.
 """
 
 from __future__ import annotations
@@ -248,9 +249,9 @@ def normal_estimators(block, n_svm: int = 300, n_window: int = 100_000, seed: in
     return out
 
 
-def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(64, 64, 64)) -> dict:
+def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(64, 64, 64), threads=1) -> dict:
     p = build_params("birch")
-    src = WoodSource(p, thickness_um=thickness_mm * 1000, seed=1, chunks=chunks)
+    src = WoodSource(p, thickness_um=thickness_mm * 1000, seed=1, chunks=chunks, threads=threads)
     t0 = time.perf_counter()
     res = trace_beam(src, square_beam(rays, 300.0, seed=1), n_wall=1.50, n_poly=1.49,
                      settings=settings_for("accurate"), capacity=2048)
@@ -258,7 +259,8 @@ def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(64, 64, 64)) -> dict:
     s = summarize(res, n_boot=100)
     whole = (3000 / chunks[0]) * (thickness_mm * 2000 / chunks[1]) * (2000 / chunks[2])
     return {
-        "thickness_mm": thickness_mm, "rays": rays, "method": "accurate", "seconds": dt,
+        "thickness_mm": thickness_mm, "rays": rays, "method": "accurate", "seconds": dt, "threads": threads,
+        "voxels_generated": len(src.distinct) * int(np.prod(chunks)), "voxels_read": s["voxels_read"],
         "chunks_generated": src.generated, "distinct_chunks": len(src.distinct),
         "chunk_shape": list(chunks),
         "chunks_of_whole_sample_1.5x1.5x1mm": int(np.ceil(whole)),
@@ -298,6 +300,7 @@ def main() -> None:
         for m in others}
     res["normal_estimators"] = normal_estimators(block)
     res["lazy_1_5mm"] = lazy_trace()
+    res["lazy_1_5mm_2_threads"] = lazy_trace(threads=2)  # as `twray trace` generates on a 2-core machine
     write_section(args.out, "trace", res)
 
 

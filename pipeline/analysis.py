@@ -120,6 +120,18 @@ class Target:
         return {"haze": self.haze, "fwhm_deg": self.fwhm_deg, "max_rays": self.max_rays}
 
 
+def voxels_read(result) -> int:
+    """Voxels the tracer read for ``result``: the voxels along each path, and at each
+    interface the normal's neighbourhood (a Gaussian window of radius ``radius_vox``,
+    evaluated 1 + ``refit`` times, or the paper's SVM box)."""
+    st = result.settings
+    if st.method == "paper":
+        per_interface = st.svm_box ** 3
+    else:
+        per_interface = (2 * math.ceil(st.radius_vox) + 1) ** 3 * (1 + st.refit)
+    return int(np.sum(result.path) + np.sum(result.events) * per_interface)
+
+
 def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
     """FWHM_R, FWHM_L (with CIs), haze and counts of a RayResult."""
     t = result.transmitted
@@ -141,6 +153,7 @@ def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
         "n_lost": int(result.status.size - counts["transmitted"]),
         "counts": counts,
         "interfaces_per_ray": float(np.mean(result.events)),
+        "voxels_read": voxels_read(result),
         "degenerate_normals": int(result.fallbacks[:, 0].sum()),
         "face_disagreements": int(result.fallbacks[:, 1].sum()),
         # Normals taken at the face point: walls thinner than the smoothing.

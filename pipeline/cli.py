@@ -359,7 +359,8 @@ def cmd_trace(args) -> int:
         params = build_params(args.preset, args.config, parse_set(args.overrides))
         make_grid((1.0, thickness * 1000.0, 1.0), voxel, (0.0, 0.0, 0.0), params)
         voxel = traced_voxel_um(voxel, settings)  # from here on, the voxels traced
-        source = WoodSource(params, thickness_um=thickness * 1000.0, voxel_um=voxel, seed=seed)
+        source = WoodSource(params, thickness_um=thickness * 1000.0, voxel_um=voxel, seed=seed,
+                            threads=os.cpu_count() or 1)
         centre = (0.0, 0.0)
         wall_um = params.wall_thickness_um
     if args.beam_origin_um is not None:
@@ -396,6 +397,8 @@ def cmd_trace(args) -> int:
     summary.update({"refine": result.settings.refine, "traced_voxel_um": voxel,
                     "delta_ri": dri, "ri_polymer": n_poly, "incidence_deg": list(incidence),
                     "seconds": elapsed, "chunks_loaded": result.chunks_loaded})
+    if not args.volume:  # the wood the trace needed, against what it read
+        summary["voxels_generated"] = len(source.distinct) * math.prod(source.chunks)
     if args.out:
         inputs = {"volume": args.volume, "preset": args.preset, "config": args.config,
                   "params": None if args.volume else params.to_dict(),

@@ -77,7 +77,7 @@ class WoodSource:
     unbounded = (True, True)
 
     def __init__(self, params: WoodParams, *, thickness_um: float, voxel_um: float = 0.5,
-                 seed: int = 1, chunks=(64, 64, 64), store=None):
+                 seed: int = 1, chunks=(64, 64, 64), store=None, threads: int = 1):
         nT = int(round(thickness_um / voxel_um))
         if nT < 1:
             raise ParameterError(f"`thickness` must be at least one voxel, got {thickness_um:g} µm")
@@ -87,6 +87,7 @@ class WoodSource:
         self.shape = (0, nT, 0)  # 0: unbounded
         self.store = store
         self.chunks = tuple(int(c) for c in (store.chunks if store is not None else chunks))
+        self.threads = max(1, int(threads))  # generating chunks (not from a store) side by side
         self.generated = 0  # chunks asked of the store or generator (not those in PackedMemo)
         self.distinct: set[tuple] = set()
         # What its voxels depend on: the chunks of equal tokens are equal (PackedMemo).
@@ -108,11 +109,32 @@ class WoodSource:
         if self.store is not None:
             out = {idx: data[:, :thick[idx], :] for idx, data in self.store.get_many(indices).items()}
         else:
-            out = {idx: generate_block(self.params, self.grid, (idx[0] * cR, idx[1] * cT, idx[2] * cL),
-                                       (cR, thick[idx], cL), seed=self.seed) for idx in indices}
+            def make(idx):
+                return generate_block(self.params, self.grid, (idx[0] * cR, idx[1] * cT, idx[2] * cL),
+                                      (cR, thick[idx], cL), seed=self.seed)
+
+            if self.threads > 1 and len(indices) > 1:
+                # The generator's kernels release the GIL: chunks are made side by side.
+                out = dict(zip(indices, _generator_pool(self.threads).map(make, indices)))
+            else:
+                out = {idx: make(idx) for idx in indices}
         self.generated += len(indices)
         self.distinct.update(indices)
         return out
+
+
+_POOLS: dict = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _generator_pool(threads: int):
+    """This process's thread pool of ``threads`` for generating chunks (made once, kept)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with _POOLS_LOCK:
+        if threads not in _POOLS:
+            _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="twray-generate")
+        return _POOLS[threads]
 
 
 def load_volume(path: str | Path):
