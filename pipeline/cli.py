@@ -618,7 +618,8 @@ def _check_rays_out(out: Path) -> None:
 
 def _add_cluster_options(p) -> None:
     """Where study and camera graphs run, and their cache."""
-    p.add_argument("--workers", default=None, help="local worker processes (default 1, using every core)")
+    p.add_argument("--workers", default=None, help="local worker processes (study: dask's split of the cores, "
+                                                   "2 on 2 cores; camera: 1, using every core)")
     p.add_argument("--threads", default=None, help="threads per local worker (default: cores / workers)")
     p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
     p.add_argument("--scheduler-file", default=None, help="scheduler file of a running Dask cluster")
@@ -648,11 +649,12 @@ def _add_study(sub):
 WORKER_MALLOC = {"MALLOC_TRIM_THRESHOLD_": 256 << 20, "MALLOC_MMAP_THRESHOLD_": 64 << 20}
 
 
-def _study_client(args):
+def _study_client(args, command: str = "study"):
     import os
 
     import dask
     from distributed import Client, LocalCluster
+    from distributed.deploy.utils import nprocesses_nthreads
 
     if args.scheduler and args.scheduler_file:
         raise ParameterError("give either `--scheduler` or `--scheduler-file`, not both")
@@ -660,8 +662,13 @@ def _study_client(args):
         return _connect(args.scheduler), None
     if args.scheduler_file:
         return _connect(scheduler_file=args.scheduler_file), None
-    workers = _int(args.workers, "workers", 1) if args.workers is not None else 1
     cores = os.cpu_count() or 1
+    # A study's shards hold the GIL between kernel calls (chunk reads, the tracer's loop):
+    # Table 1 small ran 1.6x faster on 2 processes than on 1 process of 2 threads
+    # (results/BENCH.md), so a study starts dask's split of the cores into processes.
+    # The camera's row tasks share wood chunks in one process's memory and keep one worker.
+    default = nprocesses_nthreads(cores)[0] if command == "study" else 1
+    workers = _int(args.workers, "workers", 1) if args.workers is not None else default
     threads = (_int(args.threads, "threads", 1) if args.threads is not None
                else max(1, cores // workers))
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC}
@@ -688,7 +695,7 @@ def _absolute_paths(args) -> None:
 @contextlib.contextmanager
 def _cluster(args, command: str):
     """A Dask client for ``args`` (printing its dashboard), closed with its local cluster."""
-    client, cluster = _study_client(args)
+    client, cluster = _study_client(args, command)
     try:
         print(f"twray {command}: dashboard {client.dashboard_link}", file=sys.stderr)
         yield client
