@@ -1,6 +1,7 @@
 """The command line: the generate contract, slices, and bad input (one line, exit 2, nothing written)."""
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -338,6 +339,12 @@ def test_ctrl_c_is_one_line_exit_130_and_leaves_nothing(tmp_path):
     import signal
     import time
 
+    # Compile (or load) the generator's kernels first: a first-ever run compiles them in the
+    # worker threads, and an interrupt waits for a compilation in progress to finish.
+    warm = tmp_path.parent / f"{tmp_path.name}-warm"
+    subprocess.run([sys.executable, "-m", "pipeline", "generate", "--size-um", "20,20,20", "--out",
+                    str(warm / "w.zarr")], check=True, capture_output=True)
+    shutil.rmtree(warm)
     proc = subprocess.Popen([sys.executable, "-m", "pipeline", "generate", "--size-um", "1000,1000,1000",
                              "--out", str(tmp_path / "v.zarr"), "--yes"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
