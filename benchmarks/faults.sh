@@ -64,7 +64,8 @@ echo "## Ctrl-C (SIGINT) during a 1 mm cube generate"
 "$PY" - "$TW" <<'P'
 import signal, subprocess, sys, time, pathlib
 p = subprocess.Popen([sys.argv[1], "generate", "--size-um", "1000,1000,1000", "--out", "g.zarr", "--yes"],
-                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                     preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a foreground shell
 time.sleep(5); p.send_signal(signal.SIGINT); _, err = p.communicate()
 print(f"  exit {p.returncode}; stderr: {err.strip().splitlines()[-1]}; {len(err.strip().splitlines())} lines")
 print("  left:", [q.name for q in pathlib.Path(".").iterdir() if q.name.startswith(".g.zarr") or q.name == "g.zarr"])
