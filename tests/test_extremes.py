@@ -6,7 +6,7 @@ angle, grazing rays, walls one voxel thin, a marching step wider than the
 wall, samples with no wall and all wall, 5 mm of wood, rays caught in total
 internal reflection until the event cap, and voxels of 0.0625 µm.  Where a
 method degrades (the paper's 2-voxel steps jump odd one-voxel walls), the
-test pins the degradation (tests/test_optics.py) and docs/methods.md says so.
+test pins the degradation (here and in tests/test_optics.py) and CHANGELOG.md says so.
 """
 
 import math
