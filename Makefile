@@ -8,8 +8,10 @@ SCALE ?= paper
 SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
+# Each scale has its own results folder: results/paper/ (committed) and results/small/.
+RESULTS = results/$(SCALE)
 
-.PHONY: install wheel-check demo test bench bench-generate bench-trace bench-study bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
+.PHONY: install wheel-check demo test figures report bench bench-generate bench-trace bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
 
 install: $(STAMP)
 
@@ -25,15 +27,24 @@ wheel-check:
 
 ## Main job: the paper's Table 1 (all studies) on a local Dask cluster, cached in results/cache.
 table1: install
-	$(BIN)/twray study $(addprefix studies/table1/,$(addsuffix .yaml,$(STUDIES))) $(STUDY_ARGS) --report results/table1-$(SCALE).md
+	$(BIN)/twray study $(addprefix studies/table1/,$(addsuffix .yaml,$(STUDIES))) $(STUDY_ARGS) --results $(RESULTS) --report $(RESULTS)/table1.md
 
 ## One row of Table 1, e.g. `make study-2 SCALE=small` or `make study-1 SCHEDULER=tcp://host:8786`.
 $(STUDIES): install
-	$(BIN)/twray study studies/table1/$@.yaml $(STUDY_ARGS)
+	$(BIN)/twray study studies/table1/$@.yaml $(STUDY_ARGS) --results $(RESULTS)
 
-## The paper's Figure 5: images through a TW sheet (results/camera/), e.g. `make camera SCALE=small`.
+## The paper's Figure 5: images through a TW sheet (results/<scale>/camera/), e.g. `make camera SCALE=small`.
 camera: install
-	$(BIN)/twray camera studies/camera/figure5.yaml $(STUDY_ARGS)
+	$(BIN)/twray camera studies/camera/figure5.yaml $(STUDY_ARGS) --results $(RESULTS)/camera
+
+## The paper's figures from the committed datasets -> results/figures/ (linked from results/REPORT.md).
+figures: install
+	$(BIN)/twray figures --results results/paper --out results/figures
+	$(BIN)/python benchmarks/bench_tradeoff.py --figure --results results
+
+## The reproduction report, every number read from the committed datasets -> results/REPORT.md.
+report: install
+	$(BIN)/twray report --results results --scale paper --out results/REPORT.md
 
 ## A birch sample volume and its slice images.
 demo: install
@@ -58,6 +69,10 @@ bench-trace: install
 
 bench-study: install
 	$(BIN)/python benchmarks/bench_study.py --out results/bench.json
+
+## Table 1 at paper scale, cold in a fresh cache (20-30 min on 2 cores) -> results/bench.json (REPORT.md's cost).
+bench-table1-paper: install
+	$(BIN)/python benchmarks/bench_study.py --paper --out results/bench.json
 
 bench-camera: install
 	$(BIN)/python benchmarks/bench_camera.py --out results/bench.json

@@ -74,6 +74,10 @@ def render(doc: dict) -> str:
         t1 = s["table1_small"]
         md.append(f"Every Table 1 study at `--scale small`, one `twray study` call on a local cluster: cold "
                   f"{t1['cold_s']:.1f} s, warm (nothing to compute) {t1['warm_s']:.2f} s.")
+        tp = s.get("table1_paper")
+        if tp:
+            md.append(f"At paper scale (`make table1`, `make bench-table1-paper`), cold: {tp['cold_s'] / 60:.1f} min, "
+                      f"{tp['cpu_s'] / 60:.1f} CPU-min.")
         p = s.get("paper_scene")
         if p:
             md.append(f"A paper-scale scene (1 mm birch, `accurate`), {p['rays']} rays: {p['seconds']} s, of which "

@@ -9,12 +9,16 @@ Writes the "study" section of results/bench.json:
 - workers: Table 1 at --scale small, cold, on 1 worker of 1 thread, 1 worker
   of 2 threads and 2 workers of 1 thread;
 - thickness: one cold trace (accurate, 200 rays, birch, ΔRI 0.01) through
-  0.25, 0.5 and 1 mm: seconds, chunks generated, interfaces per ray.
+  0.25, 0.5 and 1 mm: seconds, chunks generated, interfaces per ray;
+- table1_paper (only with --paper, which runs nothing else and keeps the
+  other keys): every Table 1 study at paper scale in a fresh cache, as
+  `make table1` runs it: wall and CPU seconds of the whole command.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import subprocess
 import sys
@@ -32,9 +36,9 @@ from pipeline.params import build_params
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _table1_cmd(cache: Path, results: Path, *extra) -> list:
+def _table1_cmd(cache: Path, results: Path, *extra, scale: str = "small") -> list:
     files = sorted(str(p) for p in (ROOT / "studies" / "table1").glob("*.yaml"))
-    return [sys.executable, "-m", "pipeline", "study", *files, "--scale", "small",
+    return [sys.executable, "-m", "pipeline", "study", *files, "--scale", scale,
             "--cache", str(cache), "--results", str(results), "--quiet", *extra]
 
 
@@ -75,6 +79,17 @@ def table1_small(tmp: Path) -> dict:
     return out
 
 
+def table1_paper(tmp: Path) -> dict:
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run(_table1_cmd(tmp / "cache", tmp / "results", "--yes", scale="paper"), check=True,
+                   capture_output=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {"cold_s": round(wall, 1), "cpu_s": round(cpu, 1)}
+
+
 def paper_scene(tmp: Path, n_rays: int) -> dict:
     params = build_params("birch")
     store = WoodChunkStore(tmp / "wood.zarr", params, seed=1, voxel_um=0.5)
@@ -105,13 +120,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="results/bench.json")
     ap.add_argument("--rays", type=int, default=50, help="rays of the paper-scale slice")
+    ap.add_argument("--paper", action="store_true",
+                    help="only time Table 1 at paper scale, cold (about 20-30 min on 2 cores)")
     args = ap.parse_args()
+    if args.paper:
+        out = Path(args.out)
+        section = json.loads(out.read_text()).get("study", {}) if out.exists() else {}
+        with tempfile.TemporaryDirectory() as tmp:
+            section["table1_paper"] = table1_paper(Path(tmp))
+        write_section(args.out, "study", section)
+        return
     with tempfile.TemporaryDirectory() as tmp:
         result = {"table1_small": table1_small(Path(tmp)),
                   "paper_scene": paper_scene(Path(tmp), args.rays),
                   "workers": workers(Path(tmp)),
                   "thickness": thickness(),
                   "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
+    out = Path(args.out)
+    earlier = json.loads(out.read_text()).get("study", {}) if out.exists() else {}
+    if "table1_paper" in earlier:  # measured by --paper, not by this run
+        result["table1_paper"] = earlier["table1_paper"]
     write_section(args.out, "study", result)
 
 

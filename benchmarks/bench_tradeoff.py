@@ -400,9 +400,16 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--quick", action="store_true", help="a few cheap points (smoke run)")
     ap.add_argument("--render", action="store_true", help="only write the outputs again from results/tradeoff.json")
+    ap.add_argument("--figure", action="store_true",
+                    help="only draw results/figures/tradeoff.png again from results/tradeoff.json (`make figures`)")
     args = ap.parse_args()
 
     results = Path(args.results)
+    if args.figure:
+        doc = json.loads((results / "tradeoff.json").read_text())
+        figure(doc["rows"], results / "figures" / "tradeoff.png")
+        print(f"wrote {results / 'figures' / 'tradeoff.png'}")
+        return
     if args.render:
         doc = json.loads((results / "tradeoff.json").read_text())
         write(doc["rows"], doc["seconds"], doc["workers"], results)

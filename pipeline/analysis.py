@@ -164,3 +164,36 @@ def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
 
 
 
+
+
+def image_quality(image: np.ndarray, ideal: np.ndarray) -> dict:
+    """How far a rendered image is from its ideal thin-lens image.
+
+    Parameters
+    ----------
+    image, ideal : ndarray of shape (rows, cols)
+        Pixel levels in [0, 1] (1 = light background, 0 = dark ink).
+
+    Returns
+    -------
+    dict
+        ``contrast``: Michelson contrast (b − d)/(b + d) of the image between
+        the pixels the ideal image shows light (level > 0.5, mean b) and dark
+        (mean d); 1 for a perfect black-on-white image, 0 when the object is
+        washed out.  ``ideal_contrast``: the same of the ideal image.
+        ``rmse``: root-mean-square difference from the ideal image [1].
+    """
+    image = np.asarray(image, dtype=np.float64)
+    ideal = np.asarray(ideal, dtype=np.float64)
+    if image.shape != ideal.shape:
+        raise ValueError(f"`image` and `ideal` must have one shape, got {image.shape} and {ideal.shape}")
+    light = ideal > 0.5
+    if light.all() or not light.any():
+        raise ValueError("`ideal` must show both light (> 0.5) and dark pixels to measure contrast")
+
+    def michelson(a):
+        b, d = a[light].mean(), a[~light].mean()
+        return float((b - d) / (b + d)) if b + d > 0 else float("nan")
+
+    return {"contrast": michelson(image), "ideal_contrast": michelson(ideal),
+            "rmse": float(np.sqrt(np.mean((image - ideal) ** 2)))}

@@ -64,12 +64,21 @@ EXAMPLES = {
               "chunks, ray shards and summaries are cache entries, verified when read, and each study "
               "becomes results/<study>.zarr (an xarray Dataset). An unchanged rerun computes nothing.",
               ["twray study studies/table1/study-2.yaml --scale small",
-               "twray study studies/table1/*.yaml --report results/table1-paper.md",
+               "twray study studies/table1/*.yaml --results results/paper --report results/paper/table1.md",
                "twray study my-study.yaml --scheduler-file scheduler.json --dry-run"]),
     "camera": ("Render what a thin-lens camera sees of an object through a TW sheet (the paper's Figure "
                "5): every pixel's aperture samples are traced through the sheet's wood, cached per image.",
                ["twray camera studies/camera/figure5.yaml --scale small",
-                "twray camera studies/camera/figure5.yaml --workers 2 --results results/camera"]),
+                "twray camera studies/camera/figure5.yaml --workers 2 --results results/paper/camera"]),
+    "figures": ("Draw the paper's figures from the result datasets: every Table 1 microstructure (sections "
+                "and a 3D view), rays through 1.5 mm of birch, bar charts with intervals for every study, "
+                "angle histograms with their Lorentz fits, and the camera images beside their ideal images.",
+                ["twray figures", "twray figures --results results/small --out results/small/figures",
+                 "twray figures --only studies,histograms"]),
+    "report": ("Write the reproduction report (Markdown) from the result datasets: Table 1 with every "
+               "interval, the trends as paired differences, the camera, the speed/accuracy trade and "
+               "the commands that reproduce each item. Every number is read from a dataset.",
+               ["twray report", "twray report --out /tmp/REPORT.md"]),
     "cache": ("List, verify or clean the cache of studies and the camera.",
               ["twray cache ls", "twray cache verify --remove",
                "twray cache gc studies/table1/*.yaml --scale paper --dry-run"]),
@@ -944,6 +953,73 @@ def cmd_cache(args) -> int:
     return 0
 
 
+FIGURE_KINDS = ("microstructure", "trajectories", "studies", "histograms", "camera")
+
+
+def _add_figures(sub):
+    p = _subparser(sub, "figures", help="draw the paper's figures from the result datasets")
+    p.add_argument("--results", default="results/paper",
+                   help="the scale's results folder holding study-*.zarr and camera/ (default results/paper)")
+    p.add_argument("--out", default="results/figures", help="where the PNGs go (default results/figures)")
+    p.add_argument("--only", default=None, help=f"comma-separated subset of {','.join(FIGURE_KINDS)}")
+    p.set_defaults(func=cmd_figures)
+    p = _subparser(sub, "report", help="write the reproduction report from the result datasets")
+    p.add_argument("--results", default="results", help="the results folder (default results)")
+    p.add_argument("--scale", default="paper", help="whose datasets: results/<scale>/ (default paper)")
+    p.add_argument("--out", default="results/REPORT.md", help="the report (default results/REPORT.md)")
+    p.set_defaults(func=cmd_report)
+
+
+def _need(path: Path, field: str, value: str, command: str) -> None:
+    if not path.exists():
+        raise ParameterError(f"`{field}` must hold {path.name} (run `{command}` first), got {field}={value!r}")
+
+
+def cmd_figures(args) -> int:
+    from .figures import TABLE1, make_figures
+
+    which = None
+    if args.only is not None:
+        which = {w.strip() for w in args.only.split(",") if w.strip()}
+        bad = sorted(which - set(FIGURE_KINDS))
+        if bad or not which:
+            raise ParameterError(f"`only` must name some of {', '.join(FIGURE_KINDS)}, got only={args.only!r}")
+    results = Path(args.results)
+    kinds = which or set(FIGURE_KINDS)
+    if kinds & {"studies", "histograms"}:
+        for name in (TABLE1 if "studies" in kinds else ("study-1",)):
+            _need(results / f"{name}.zarr", "results", args.results, "make table1")
+    if "camera" in kinds:
+        _need(results / "camera" / "figure5.zarr", "results", args.results, "make camera")
+    out = _out_path(args.out, "out")
+    t0 = time.perf_counter()
+    made = make_figures(results, out, which=which)
+    print(f"{len(made)} figures in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from .cache import atomic_write
+    from .report import TABLE1, build_report, figure_links
+
+    results = Path(args.results)
+    base = results / args.scale
+    for name in TABLE1:
+        _need(base / f"{name}.zarr", "results", args.results, f"make table1 SCALE={args.scale}")
+    _need(base / "camera" / "figure5.zarr", "results", args.results, f"make camera SCALE={args.scale}")
+    _need(results / "tradeoff.zarr", "results", args.results, "make tradeoff")
+    _need(results / "bench.json", "results", args.results, "make bench")
+    out = _out_path(args.out, "out")
+    text = build_report(results, scale_dir=args.scale)
+    atomic_write(out, lambda tmp: tmp.write_text(text))
+    missing = [f for f in figure_links(text) if not (out.parent / f).exists()]
+    print(f"wrote {out}")
+    if missing:
+        print(f"twray report: {len(missing)} linked figures do not exist yet (run `make figures`): "
+              f"{', '.join(missing)}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="twray", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"twray {__version__}")
@@ -953,6 +1029,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_study(sub)
     _add_camera(sub)
     _add_cache(sub)
+    _add_figures(sub)
     p = _subparser(sub, "slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
     p.add_argument("volume", help="a twray volume (.zarr)")
     p.add_argument("--out", required=True, help="output directory")
