@@ -402,7 +402,8 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("|---|---|---|---|")
     for name in TABLE1:
         exp, why = EXPECTED[name]
-        add(f"| {name} | {exp} | {why} | {_agreement(name, all_effects[name], tables)} |")
+        cells = (name, exp, why, _agreement(name, all_effects[name], tables))
+        add("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     add("")
     add("The published study's own Table 1 values are not part of this repository's specification "
         "(SPEC.md gives the studies, not their results), so the comparison above is with what "

@@ -71,6 +71,21 @@ def test_the_report_is_what_its_datasets_give_today(report_text):
     assert build_report(RESULTS) == report_text
 
 
+def test_every_table_row_of_the_report_has_its_header_s_columns(report_text):
+    """A '|' inside a cell (|ΔRI|) must be escaped, or Markdown splits the row."""
+    tables, current = [], []
+    for line in report_text.splitlines() + [""]:
+        if line.startswith("|"):
+            current.append(line)
+        elif current:
+            tables.append(current)
+            current = []
+    assert len(tables) >= 5
+    for rows in tables:
+        widths = {len(re.split(r"(?<!\\)\|", row)) for row in rows}
+        assert len(widths) == 1, rows[0]
+
+
 def test_every_figure_the_report_links_exists_and_is_a_png(report_text):
     links = figure_links(report_text)
     assert len(links) >= 15
