@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.report import TRADEOFF_TARGETS, cheapest_meeting
+
 BEAM_UM = 150.0
 SEED = 1
 N_BOOT = 100
@@ -219,11 +221,7 @@ def _label(r: dict) -> str:
     return f"`{r['method']}` at {r['voxel_um']:g} µm, {r['rays']} rays{step}"
 
 
-TARGETS = [  # (name, haze half-width [points], FWHM_R relative)
-    ("haze ±1 point, FWHM_R ±5 %", 1.0, 0.05),
-    ("haze ±3 points, FWHM_R ±10 %", 3.0, 0.10),
-    ("haze ±5 points, FWHM_R ±25 %", 5.0, 0.25),
-]
+TARGETS = TRADEOFF_TARGETS  # (name, haze error [points], FWHM_R relative)
 
 
 def recommend(rows: list[dict]) -> list[str]:
@@ -232,11 +230,10 @@ def recommend(rows: list[dict]) -> list[str]:
     for sc in scenes():
         sel = [r for r in rows if r["scene"] == sc and "haze_error" in r and not r["reference"]]
         for name, h, f in TARGETS:
-            ok = [r for r in sel if 100 * r["haze_error"] <= h and abs(r["fwhm_r_rel_error"]) <= f]
-            if not ok:
+            b = cheapest_meeting(sel, h, f)
+            if b is None:
                 lines.append(f"| {sc} | {name} | none of the swept settings | | |")
                 continue
-            b = min(ok, key=lambda r: r["wall_s"])
             lines.append(f"| {sc} | {name} | {_label(b)} | {b['wall_s']:.1f} s | haze ±{100 * b['haze_error']:.1f} "
                          f"points, FWHM_R ±{100 * abs(b['fwhm_r_rel_error']):.0f} % |")
     return lines

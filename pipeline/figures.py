@@ -32,12 +32,15 @@ import numpy as np
 
 from .analysis import HAZE_ANGLE_DEG, cauchy_fit, image_quality
 from .cache import atomic_write
+from .optics.tracer import STATUS_NAMES
 from .params import Grid, WoodParams, build_params, validate
 
 TABLE1 = ("study-1", "study-2", "study-3", "study-4", "study-5-1", "study-5-2", "study-6")
 SECTION_UM = (300.0, 500.0, 600.0)  # the block the sections bound, along R, T, L [µm]
 SECTION_VOXEL_UM = 0.5
 DPI = 110
+_STATUS = {name: code for code, name in STATUS_NAMES.items()}
+TRANSMITTED, TRAPPED = _STATUS["transmitted"], _STATUS["trapped"]
 
 
 def _pyplot():
@@ -192,7 +195,6 @@ def trajectories(record: dict, *, n_rays: int = 16, every: int = 3, seed: int = 
     Returns (points, status): points of shape (n_rays, K, 3) along [R, T, L],
     the last row of each ray repeated once it has left; status the final one.
     """
-    from .optics import _kernels as K
     from .optics.sources import WoodSource
     from .optics.tracer import TraceSettings, square_beam, trace_beam, traced_voxel_um
 
@@ -206,14 +208,12 @@ def trajectories(record: dict, *, n_rays: int = 16, every: int = 3, seed: int = 
     points = [beam.origins.copy()]
     for k in range(every, int(full.events.max()) + every, every):
         part = trace_beam(source, beam, settings=dataclasses.replace(settings, max_events=k), **kw)
-        points.append(np.where((part.status == K.TRAPPED)[:, None], part.position, full.position))
+        points.append(np.where((part.status == TRAPPED)[:, None], part.position, full.position))
     points.append(full.position)
     return np.stack(points, axis=1) * v, full.status
 
 
 def plot_trajectories(points: np.ndarray, status: np.ndarray, caption: str, path: Path) -> Path:
-    from .optics import _kernels as K
-
     plt = _pyplot()
     fig = plt.figure(figsize=(11, 4.2))
     gs = fig.add_gridspec(1, 3, width_ratios=[1.5, 1, 1], wspace=0.3)
@@ -223,7 +223,7 @@ def plot_trajectories(points: np.ndarray, status: np.ndarray, caption: str, path
     colours = plt.cm.viridis(np.linspace(0, 0.9, len(points)))
     for p, c, st in zip(points, colours, status):
         r, t, l_ = p[:, 0], p[:, 1] / 1000.0, p[:, 2]
-        ls = "-" if st == K.TRANSMITTED else ":"
+        ls = "-" if st == TRANSMITTED else ":"
         ax3.plot(l_, r, t, color=c, lw=0.8, ls=ls)
         axr.plot(r, t, color=c, lw=0.8, ls=ls)
         axl.plot(l_, t, color=c, lw=0.8, ls=ls)
@@ -288,21 +288,16 @@ def plot_study(ds, path: Path) -> Path:
 
 
 def _settings(ds) -> dict:
-    import json
-
     return json.loads(ds.attrs["trace_settings"])
 
 
 def plot_histograms(ds, thicknesses, path: Path) -> Path:
     """θ_R and θ_L of the transmitted rays with the fitted Lorentz density (study 1's Dataset)."""
-    from .optics.tracer import STATUS_NAMES
-
     plt = _pyplot()
-    transmitted = {v: k for k, v in STATUS_NAMES.items()}["transmitted"]
     fig, axes = plt.subplots(len(thicknesses), 2, figsize=(9, 3.0 * len(thicknesses)), squeeze=False)
     for i, th in enumerate(thicknesses):
         one = ds.sel(thickness=th)
-        ok = one["status"].values == transmitted
+        ok = one["status"].values == TRANSMITTED
         for j, (var, fw) in enumerate((("theta_r", "FWHM_R"), ("theta_l", "FWHM_L"))):
             ax = axes[i, j]
             theta = one[var].values[ok]
