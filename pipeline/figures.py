@@ -156,6 +156,7 @@ def _cube(ax, sec: dict, *, every: int = 5) -> None:
     ax.set_zlabel("−T (µm)", fontsize=7, labelpad=-2)
     ax.tick_params(labelsize=5, pad=0)
     ax.set_box_aspect((L, R, T))
+    ax.set_yticks([0, R / 2, R])  # the short axis: three ticks, not crowded
     ax.view_init(elev=24, azim=-58)
 
 
@@ -265,8 +266,10 @@ def plot_study(ds, path: Path) -> Path:
     dim = next(iter(ds["FWHM_R"].dims))
     labels = _value_labels(ds, dim)
     x = np.arange(len(labels))
-    units = ds[dim].attrs.get("units", "")
-    xlabel = ds[dim].attrs.get("long_name", dim) + (f" ({units})" if units and units not in ("1",) else "")
+    units = {"um": "µm"}.get(ds[dim].attrs.get("units", ""), ds[dim].attrs.get("units", ""))
+    # A wood parameter's long_name is its key in words ("wall thickness um"): the unit goes in brackets.
+    name = ds[dim].attrs.get("long_name", dim).removesuffix(" um")
+    xlabel = name + (f" ({units})" if units and units != "1" else "")
     fig, axes = plt.subplots(1, 3, figsize=(10, 3.2))
     for ax, (var, scale, ylabel, colour) in zip(axes, (
             ("FWHM_R", 1.0, "FWHM_R (°)", "#3b6ea8"),
@@ -330,19 +333,28 @@ def plot_camera(ds, path: Path) -> Path:
     plt = _pyplot()
     configs = [str(c) for c in ds["config"].values]
     fig, axes = plt.subplots(2, len(configs), figsize=(2.7 * len(configs), 6.4), squeeze=False)
+    r_axis = json.loads(ds.attrs.get("r_axis", "{}"))
     for k, name in enumerate(configs):
         one = ds.sel(config=name)
         q = image_quality(one["image"].values, one["ideal"].values)
-        axes[0, k].imshow(one["ideal"].values, cmap="gray", vmin=0, vmax=1)
-        axes[0, k].set_title(f"{name}: ideal thin-lens image", fontsize=7)
-        axes[1, k].imshow(one["image"].values, cmap="gray", vmin=0, vmax=1)
+        # Object-plane coordinates of the pixels [µm]: the images are shown upright at object scale.
+        x, y = one["x_object_um"].values, one["y_object_um"].values
+        half_x, half_y = (x[1] - x[0]) / 2, (y[0] - y[1]) / 2
+        extent = [x[0] - half_x, x[-1] + half_x, y[-1] - half_y, y[0] + half_y]
+        axes[0, k].imshow(one["ideal"].values, cmap="gray", vmin=0, vmax=1, extent=extent)
+        axes[0, k].set_title(f"{name}: ideal thin-lens image\nf {float(one['focal_mm']):g} mm, "
+                             f"magnification {float(one['magnification']):.3g}", fontsize=7)
+        axes[1, k].imshow(one["image"].values, cmap="gray", vmin=0, vmax=1, extent=extent)
         dri = float(one["delta_ri"])
         axes[1, k].set_title(f"through {float(one['thickness_um']) / 1000:g} mm, ΔRI {dri:.3g}, "
                              f"gap {float(one['gap_um']):g} µm\ncontrast {q['contrast']:.2f}, "
                              f"RMS error {q['rmse']:.3f}", fontsize=7)
+        along = {"x": "x", "y": "y"}.get(r_axis.get(name) or "", None)
+        axes[1, k].set_xlabel("x (µm, object plane)" + (f"; wood R along {along}" if along else ""), fontsize=6)
         for ax in axes[:, k]:
-            ax.set_xticks([])
-            ax.set_yticks([])
+            ax.tick_params(labelsize=6)
+        axes[0, k].set_ylabel("y (µm)", fontsize=6)
+        axes[1, k].set_ylabel("y (µm)", fontsize=6)
     fig.suptitle(f"{ds.attrs['title']} ({ds.attrs['samples_per_pixel']} aperture samples per pixel)",
                  fontsize=9)
     fig.tight_layout(h_pad=2.0)
