@@ -174,9 +174,13 @@ def ray_row(seed, M, k):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def near_ray(seed, M, m, dist):
-    """True when node row m is within ``dist`` rows of a ray column."""
-    if M[RAYS] == 0.0:
-        return False
+    """True when node row m is within ``dist`` rows of a ray column.
+
+    Ray columns are a property of the lattice: they are where they are whether or
+    not ray cells are drawn (``M[RAYS]``), so that switching ray cells off changes
+    the ray tissue and its squeeze alone, and leaves the vessels (placed away from
+    ray columns) and the fibres' distortion where they were.
+    """
     kc = np.int64(round(m / M[RSPACE]))
     for k in range(kc - 1, kc + 2):
         if abs(m - ray_row(seed, M, k)) < dist:
