@@ -7,11 +7,14 @@ PYTEST_ARGS ?=
 SCALE ?= paper
 SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
-STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
+EXPERIMENT := birch-0.7mm birch-0.7mm-air balsa-1mm balsa-1mm-air
+# YES=1 runs what is estimated above TWRAY_CONFIRM_CPU_HOURS (Table 1 at paper scale: ~2.2 CPU-h).
+YES ?=
+STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $(YES),--yes)
 # Each scale has its own results folder: results/paper/ (committed) and results/small/.
 RESULTS = results/$(SCALE)
 
-.PHONY: install wheel-check demo test figures report bench bench-generate bench-trace bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
+.PHONY: install wheel-check demo test figures report experiment table1-paper-method convergence bench bench-generate bench-trace bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
 
 install: $(STAMP)
 
@@ -28,6 +31,18 @@ wheel-check:
 ## Main job: the paper's Table 1 (all studies) on a local Dask cluster, cached in results/cache.
 table1: install
 	$(BIN)/twray study $(addprefix studies/table1/,$(addsuffix .yaml,$(STUDIES))) $(STUDY_ARGS) --results $(RESULTS) --report $(RESULTS)/table1.md
+
+## The paper's two measured samples (birch 0.7 mm, balsa 1 mm), angles inside and in air -> results/<scale>/experiment/.
+experiment: install
+	$(BIN)/twray study $(addprefix studies/experiment/,$(addsuffix .yaml,$(EXPERIMENT))) $(STUDY_ARGS) --results $(RESULTS)/experiment --report $(RESULTS)/experiment/haze.md
+
+## Table 1 with the paper's method (500 rays per wood) beside `accurate` -> results/<scale>/paper-method/ (~3.5 CPU-h at paper scale).
+table1-paper-method: install
+	$(BIN)/twray study $(addprefix studies/table1/,$(addsuffix .yaml,$(STUDIES))) $(STUDY_ARGS) --method paper --rays 500 --results $(RESULTS)/paper-method --report $(RESULTS)/paper-method/table1.md
+
+## How far each Table 1 value moves with 4000 rays and with a voxel twice as coarse -> results/convergence.zarr, results/CONVERGENCE.md.
+convergence: install
+	$(BIN)/python benchmarks/convergence.py --results results
 
 ## One row of Table 1, e.g. `make study-2 SCALE=small` or `make study-1 SCHEDULER=tcp://host:8786`.
 $(STUDIES): install

@@ -25,6 +25,9 @@ def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
     med = float(np.median(x))
     iqr = float(np.subtract(*np.percentile(x, [75, 25])))
     scale0 = max(iqr / 2.0, 1e-9)
+    newton = _cauchy_newton(x, med, math.log(scale0))
+    if newton is not None:
+        return newton
 
     def nll(p):
         loc, log_g = p
@@ -37,6 +40,47 @@ def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
         res = optimize.minimize(nll, [med, np.log(scale0)], method="Nelder-Mead",
                                 options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 4000})
     return float(res.x[0]), float(np.exp(res.x[1]))
+
+
+def _cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 100):
+    """Newton's method with a backtracking line search on the Cauchy log-likelihood in
+    (θ0, log γ), from (``loc``, ``log_g``); None when it does not converge (the caller then
+    uses Nelder-Mead).  About twenty times faster than Nelder-Mead, to the same optimum."""
+    n = x.size
+
+    def nll(m, s):
+        return float(np.sum(np.log((x - m) ** 2 + math.exp(2 * s)))) - n * s
+
+    f = nll(loc, log_g)
+    for _ in range(max_iter):
+        g2 = math.exp(2 * log_g)
+        d = x - loc
+        q = d * d + g2
+        w = 1.0 / q
+        grad = np.array([np.sum(-2.0 * d * w), np.sum(2.0 * g2 * w) - n])
+        w2 = w * w
+        h = np.array([[np.sum(2.0 * (g2 - d * d) * w2), np.sum(4.0 * d * g2 * w2)],
+                      [np.sum(4.0 * d * g2 * w2), np.sum(4.0 * g2 * d * d * w2)]])
+        try:
+            step = -np.linalg.solve(h, grad)
+            if not np.all(np.isfinite(step)) or float(step @ grad) >= 0.0:
+                raise np.linalg.LinAlgError
+        except np.linalg.LinAlgError:
+            step = -grad / max(np.abs(np.diag(h)).max(), 1e-300)  # not convex here: descend
+        t = 1.0
+        while True:
+            m1, s1 = loc + t * step[0], log_g + t * step[1]
+            f1 = nll(m1, s1)
+            if f1 <= f + 1e-4 * t * float(step @ grad) or t < 1e-10:
+                break
+            t *= 0.5
+        if not math.isfinite(f1) or t < 1e-10:
+            return None
+        done = abs(m1 - loc) <= 1e-12 * (1.0 + abs(loc)) + 1e-12 * math.exp(log_g) and abs(s1 - log_g) <= 1e-12
+        loc, log_g, f = m1, s1, f1
+        if done:
+            return float(loc), float(math.exp(log_g))
+    return None
 
 
 def fwhm(theta_deg: np.ndarray) -> float:
@@ -76,6 +120,18 @@ def haze(directions: np.ndarray, incident=(0.0, 1.0, 0.0)) -> float:
         return float("nan")
     cosang = np.sum(d * inc, axis=1) / (np.linalg.norm(d, axis=1) * np.linalg.norm(inc, axis=1))
     return float(np.mean(np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))) > HAZE_ANGLE_DEG))
+
+
+def deviates(directions: np.ndarray, incident=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """Per direction: 1.0 when it deviates from the incident one by more than 2.5°, 0.0 when
+    not, NaN where the incident direction is NaN (see :func:`haze`)."""
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    inc = np.broadcast_to(np.asarray(incident, dtype=np.float64), d.shape)
+    with np.errstate(invalid="ignore"):
+        cosang = np.sum(d * inc, axis=1) / (np.linalg.norm(d, axis=1) * np.linalg.norm(inc, axis=1))
+        out = (np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))) > HAZE_ANGLE_DEG).astype(np.float64)
+    out[np.isnan(inc).any(axis=1)] = np.nan
+    return out
 
 
 def haze_ci(haze_fraction: float, n: int, *, level: float = 0.95) -> tuple[float, float]:
@@ -164,6 +220,78 @@ def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
 
 
 
+def _percentile_ci(samples: np.ndarray, level: float) -> list:
+    a = (1.0 - level) / 2.0
+    ok = samples[np.isfinite(samples)]
+    if ok.size < 2:
+        return [float("nan"), float("nan")]
+    return [float(np.quantile(ok, a)), float(np.quantile(ok, 1.0 - a))]
+
+
+def pool(results: list, *, n_boot: int = 200, seed: int = 0, level: float = 0.95) -> dict:
+    """FWHM_R, FWHM_L and haze of the rays of several wood realisations pooled, with intervals
+    that include the wood-to-wood variation.
+
+    Parameters
+    ----------
+    results : list of RayResult
+        One per realisation of a scene (its wood and beam drawn with another seed).
+
+    Returns
+    -------
+    dict
+        The numbers of all transmitted rays pooled (realisation 0's first);
+        ``*_ci``: a hierarchical bootstrap, drawing realisations with
+        replacement and then rays within each drawn realisation, so the interval
+        holds the wood-to-wood variance as well as the ray sampling;
+        ``*_ray_ci``: the ray sampling alone (each realisation once, its rays
+        redrawn).  With one realisation the two coincide, and the haze
+        intervals are the Wilson interval of :func:`haze_ci`.
+    """
+    parts = []
+    for r in results:
+        t = r.transmitted
+        hz = deviates(r.exit_direction[t], (0.0, 1.0, 0.0) if r.incident is None else r.incident[t])
+        parts.append((r.theta_r[t], r.theta_l[t], hz))
+
+    def reduce(chosen):
+        tr = np.concatenate([parts[k][0][idx] for k, idx in chosen])
+        tl = np.concatenate([parts[k][1][idx] for k, idx in chosen])
+        hz = np.concatenate([parts[k][2][idx] for k, idx in chosen])
+        hz = hz[np.isfinite(hz)]
+        return (fwhm(tr) if tr.size else np.nan, fwhm(tl) if tl.size else np.nan,
+                float(hz.mean()) if hz.size else np.nan)
+
+    point = reduce([(k, np.arange(p[0].size)) for k, p in enumerate(parts)])
+    rng = np.random.default_rng(seed)
+    n_real = len(parts)
+    ray_only = np.empty((n_boot, 3))
+    nested = np.empty((n_boot, 3))
+    for b in range(n_boot):
+        ray_only[b] = reduce([(k, rng.integers(0, p[0].size, p[0].size)) for k, p in enumerate(parts)])
+        if n_real == 1:
+            nested[b] = ray_only[b]
+            continue
+        picks = rng.integers(0, n_real, n_real)
+        nested[b] = reduce([(k, rng.integers(0, parts[k][0].size, parts[k][0].size)) for k in picks])
+    n_haze = int(sum(np.isfinite(p[2]).sum() for p in parts))
+    wilson = list(haze_ci(point[2], n_haze, level=level))
+    counts = [r.counts()["transmitted"] for r in results]
+    n_rays = int(sum(r.status.size for r in results))
+    return {
+        "fwhm_r_deg": float(point[0]), "fwhm_l_deg": float(point[1]), "haze": float(point[2]),
+        "fwhm_r_ci_deg": _percentile_ci(nested[:, 0], level),
+        "fwhm_l_ci_deg": _percentile_ci(nested[:, 1], level),
+        "haze_ci": _percentile_ci(nested[:, 2], level) if n_real > 1 else wilson,
+        "fwhm_r_ray_ci_deg": _percentile_ci(ray_only[:, 0], level),
+        "fwhm_l_ray_ci_deg": _percentile_ci(ray_only[:, 1], level),
+        "haze_ray_ci": wilson,
+        "realisations": n_real,
+        "n_rays": n_rays,
+        "n_transmitted": int(sum(counts)),
+        "n_lost": int(n_rays - sum(counts)),
+        "interfaces_per_ray": float(np.mean(np.concatenate([r.events for r in results]))),
+    }
 
 
 def image_quality(image: np.ndarray, ideal: np.ndarray) -> dict:

@@ -642,6 +642,12 @@ def _add_study(sub):
     _add_cluster_options(p)
     p.add_argument("--results", default="results", help="where <study>.zarr goes (default results)")
     p.add_argument("--shard-rays", default="250", help="rays per tracing task (default 250)")
+    p.add_argument("--realisations", default=None,
+                   help="wood realisations per value (default: the file's `realisations`, 5; at most 2 at "
+                        "scale small)")
+    p.add_argument("--method", default=None, help="trace with this method instead of the file's trace.method "
+                                                  "(paper, fast, accurate)")
+    p.add_argument("--rays", default=None, help="rays per value and realisation instead of the file's (not scaled)")
     p.add_argument("--dry-run", action="store_true", help="list each stage as cached or to compute")
     p.add_argument("--report", default=None, help="also write a Markdown table of every study here")
     p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
@@ -697,7 +703,7 @@ def _absolute_paths(args) -> None:
     from .cache import sweep_leftovers
 
     # What runs interrupted before this one left half-written (removed unless still running).
-    sweep_leftovers(args.results, *(Path(args.cache) / d for d in ("rays", "summary", "camera")))
+    sweep_leftovers(args.results, *(Path(args.cache) / d for d in ("rays", "summary", "pool", "camera")))
     sweep_leftovers(Path(args.cache) / "micro", deep=True)  # chunk files too
 
 
@@ -715,7 +721,8 @@ def _cluster(args, command: str):
 
 
 def cmd_study(args) -> int:
-    from .study.run import compute, describe_plan, plan_study, report_table, summary_rows, widen, write_dataset
+    from .study.run import (compute, describe_plan, plan_study, ray_sampling, report_table, summary_rows, widen,
+                            write_dataset)
     from .study.spec import load_study
 
     shard_rays = _int(args.shard_rays, "shard_rays", 1)
@@ -725,18 +732,22 @@ def cmd_study(args) -> int:
     report = _out_path(args.report, "report") if args.report is not None else None
     if report is not None and report.is_dir():
         raise ParameterError(f"`report` must be a file path, got report={args.report!r} (a folder)")
-    studies = [load_study(f, scale=args.scale) for f in args.files]
+    realisations = None if args.realisations is None else _int(args.realisations, "realisations", 1)
+    rays = None if args.rays is None else _int(args.rays, "rays", 1)
+    studies = [load_study(f, scale=args.scale, realisations=realisations, method=args.method, rays=rays)
+               for f in args.files]
     names = [s.name for s in studies]
     if len(set(names)) != len(names):
         raise ParameterError(f"study files must have distinct names, got {names}")
     # What could never fit is refused before planning (which lists the wood's chunks).
-    scenes = [sc for st in studies for sc in st.scenes]
+    scenes = [sc for st in studies for sc in st.all_scenes()]
     fit = "use fewer rays, a narrower beam, larger voxels or a thinner sample"
     est = limits.study_estimate(scenes, shard_rays=shard_rays)
     limits.check(est, what="`study`", yes=True, disk_path=args.cache, fit=fit)
     t0 = time.perf_counter()
     plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
-    todo = [plan.study.scenes[summ.scene_index] for plan in plans for summ in plan.summaries if not summ.cached]
+    todo = [plan.study.realisation(summ.scene_index, summ.realisation)
+            for plan in plans for summ in plan.summaries if not summ.cached]
     est = limits.study_estimate(todo, shard_rays=shard_rays)
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
         print(f"twray study: estimate for the {len(todo)} value{'' if len(todo) == 1 else 's'} to compute: "
@@ -769,10 +780,10 @@ def cmd_study(args) -> int:
         st = plan.study
         target = st.scenes[0].target
         met = "" if target is None else (
-            ", target_ci met" if all(target.met(r) for r in summary_rows(plan)) else
+            ", target_ci met" if all(target.met(ray_sampling(r)) for r in summary_rows(plan)) else
             f", target_ci NOT met at max_rays {target.max_rays}")
-        print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays, "
-              f"{st.scenes[0].settings.method}{met})")
+        print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays x {st.realisations} "
+              f"realisation{'' if st.realisations == 1 else 's'}, {st.scenes[0].settings.method}{met})")
         for row in summary_rows(plan):
             print(f"  {st.dimension}={row['value']}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
                   f"FWHM_L {row['fwhm_l_deg']:.2f}°, haze {100 * row['haze']:.1f} % "
@@ -1007,6 +1018,11 @@ def cmd_report(args) -> int:
     for name in TABLE1:
         _need(base / f"{name}.zarr", "results", args.results, f"make table1 SCALE={args.scale}")
     _need(base / "camera" / "figure5.zarr", "results", args.results, f"make camera SCALE={args.scale}")
+    for name in ("birch-0.7mm", "birch-0.7mm-air", "balsa-1mm", "balsa-1mm-air"):
+        _need(base / "experiment" / f"{name}.zarr", "results", args.results, f"make experiment SCALE={args.scale}")
+    for name in TABLE1:
+        _need(base / "paper-method" / f"{name}.zarr", "results", args.results,
+              f"make table1-paper-method SCALE={args.scale}")
     _need(results / "tradeoff.zarr", "results", args.results, "make tradeoff")
     _need(results / "bench.json", "results", args.results, "make bench")
     out = _out_path(args.out, "out")

@@ -2,7 +2,7 @@
 
 The cache (``results/cache`` by default) has one folder per stage:
 ``micro/<key>.zarr`` (wood chunk stores), ``rays/<key>.npz``,
-``summary/<key>.json`` and ``camera/<key>.npz``.  Every entry is named by
+``summary/<key>.json``, ``pool/<key>.json`` and ``camera/<key>.npz``.  Every entry is named by
 the key of what produced it and can say what that was (its record,
 :func:`pipeline.cache.entry_record`; a wood store's attributes).
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 
 from .cache import cache_key, check_json, check_npz, entry_record, is_leftover
 
-STAGES = {"micro": ".zarr", "rays": ".npz", "summary": ".json", "camera": ".npz"}
+STAGES = {"micro": ".zarr", "rays": ".npz", "summary": ".json", "pool": ".json", "camera": ".npz"}
 
 
 @dataclass
@@ -65,6 +65,8 @@ def _about(stage: str, path: Path) -> str:
                 f"tracer {record.get('tracer')}")
     if stage == "summary":
         return f"summary of {len(record.get('rays', []))} ray shards, {record.get('n_boot')} bootstrap draws"
+    if stage == "pool":
+        return f"{len(record.get('summaries', []))} wood realisations pooled, {record.get('n_boot')} bootstrap draws"
     if stage == "camera":
         cam = record.get("camera", {})
         return f"image {cam.get('pixels')} px, {'with' if record.get('sheet') else 'without'} sheet, " \
@@ -105,7 +107,7 @@ def verify(entry: Entry) -> list[tuple[Path, str]]:
         return _verify_wood(entry)
     if entry.stage in ("rays", "camera"):
         why = check_npz(entry.path, entry.key)[1]
-    elif entry.stage == "summary":
+    elif entry.stage in ("summary", "pool"):
         why = check_json(entry.path, entry.key)[1]
     else:
         return []
@@ -185,4 +187,5 @@ def keys_in_use(files, scales, cache) -> set:
             keys.update(plan.micros)
             keys.update(s.key for s in plan.shards)
             keys.update(s.key for s in plan.summaries)
+            keys.update(p.key for p in plan.pools)
     return keys

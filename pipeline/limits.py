@@ -102,7 +102,7 @@ def check(est: Estimate, *, what: str, yes: bool, disk_path=None, fit: str = "")
                              f"under {disk_path}{hint}")
     if not yes and not est.cpu_s <= confirm_hours() * 3600:
         raise ParameterError(f"{what} needs {est.text()}, above {CONFIRM_ENV}={confirm_hours():g} CPU-hours: "
-                             f"add --yes to run it{hint}")
+                             f"add --yes (with make: YES=1) to run it{hint}")
 
 
 def wood_voxels(beam_um: float, thickness_um: float, voxel_um: float) -> float:

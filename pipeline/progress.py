@@ -39,15 +39,17 @@ def line(label: str, done: int, total: int, elapsed: float) -> str:
     return f"{label}: {done}/{total} tasks done ({rate:.2g} per s){_eta(done, total, elapsed)}"
 
 
-def _pending(dask_scheduler, keys) -> int:
-    """How many of ``keys`` the scheduler has still to compute (finished ones are in memory or
-    already forgotten)."""
-    n = 0
+def _pending(dask_scheduler, keys) -> tuple[list, list]:
+    """Which of ``keys`` the scheduler holds, and which of those it has still to compute
+    (finished ones are in memory or, once used, forgotten)."""
+    held, pending = [], []
     for k in keys:
         ts = dask_scheduler.tasks.get(k)
-        if ts is not None and ts.state not in ("memory", "erred", "forgotten"):
-            n += 1
-    return n
+        if ts is not None:
+            held.append(k)
+            if ts.state not in ("memory", "erred", "forgotten"):
+                pending.append(k)
+    return held, pending
 
 
 def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRESS_EVERY_S) -> None:
@@ -62,6 +64,7 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
     if how != "lines":
         return
     keys = list(keys)
+    seen: set = set()
     t0 = time.perf_counter()
     while True:
         try:
@@ -71,8 +74,12 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
             finished = False
         if finished:
             break
-        pending = client.run_on_scheduler(_pending, keys=keys)
-        print(line(label, len(keys) - pending, len(keys), time.perf_counter() - t0), file=sys.stderr, flush=True)
+        held, pending = client.run_on_scheduler(_pending, keys=keys)
+        # A key the scheduler has not held yet (a large graph is still arriving) is to do; one
+        # it held and has dropped is done.
+        seen.update(held)
+        done = len(seen) - len(pending)
+        print(line(label, done, len(keys), time.perf_counter() - t0), file=sys.stderr, flush=True)
     print(line(label, len(keys), len(keys), time.perf_counter() - t0), file=sys.stderr, flush=True)
 
 

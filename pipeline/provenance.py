@@ -30,9 +30,13 @@ def link_intervals(ds, level: float, n_boot: int) -> None:
     """Link each ``<name>_ci_lower/upper`` pair to ``<name>`` (CF ``ancillary_variables``) and
     record the interval's level and bootstrap size on both bounds."""
     for name in list(ds.data_vars):
-        lower, upper = f"{name}_ci_lower", f"{name}_ci_upper"
-        if lower in ds and upper in ds:
-            ds[name].attrs["ancillary_variables"] = f"{lower} {upper}"
-            for bound in (lower, upper):
-                ds[bound].attrs.update({"confidence_level": level, "bootstrap_resamples": n_boot,
-                                        "interval": "bootstrap percentile"})
+        linked = []
+        for kind in ("ci", "ray_ci"):  # ray_ci: the ray sampling alone (studies of several woods)
+            lower, upper = f"{name}_{kind}_lower", f"{name}_{kind}_upper"
+            if lower in ds and upper in ds:
+                linked += [lower, upper]
+                for bound in (lower, upper):
+                    ds[bound].attrs.update({"confidence_level": level, "bootstrap_resamples": n_boot,
+                                            "interval": "bootstrap percentile"})
+        if linked:
+            ds[name].attrs["ancillary_variables"] = " ".join(linked)

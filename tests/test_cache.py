@@ -28,6 +28,7 @@ STUDY = """\
 title: damage
 preset: birch
 seed: 3
+realisations: 1
 rays: 400
 beam_um: 100
 thickness_mm: 0.3

@@ -84,7 +84,7 @@ BAD = [
     (["--set", "node_jitter=0.3"], "node_jitter", "in [0, 0.2]"),
     (["--voxel-um", "nan"], "voxel_um", "finite"),
     (["--voxel-um", "1e-6"], "size_um", "at most 1e13 voxels"),
-    (["--size-um", "10000000,150,100"], "generate", "add --yes to run it"),  # a 10 m sample: 22 CPU-h
+    (["--size-um", "10000000,150,100"], "generate", "add --yes (with make: YES=1) to run it"),  # a 10 m sample: 22 CPU-h
 ]
 
 
@@ -325,7 +325,7 @@ def test_a_long_run_asks_for_yes_above_the_configured_cpu_hours(tmp_path, capsys
     monkeypatch.setenv("TWRAY_CONFIRM_CPU_HOURS", "0.001")
     argv = ["generate", "--size-um", "300,300,300", "--out", str(tmp_path / "v.zarr")]
     code, _, err = run(capsys, *argv)
-    assert code == 2 and "add --yes to run it" in err and "CPU" in err and "use --lazy" in err
+    assert code == 2 and "add --yes (with make: YES=1) to run it" in err and "CPU" in err and "use --lazy" in err
     assert list(tmp_path.iterdir()) == []
     code, _, _ = run(capsys, *argv, "--lazy")  # nothing generated: nothing to ask
     assert code == 0

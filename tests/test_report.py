@@ -169,6 +169,51 @@ def test_untransmitted_rays_leave_the_widths_and_haze():
     assert float(ds["FWHM_R"][1]) == pytest.approx(fwhm(r[100:]))
 
 
+def test_effects_over_woods_pair_the_woods_and_widen_with_them():
+    """Two woods that scatter 1× and 3×: a value whose angles are all doubled is +100 % on every
+    draw (paired), while each value's own interval spans the woods."""
+    from pipeline.report import _reduce, per_ray
+
+    rng = np.random.default_rng(8)
+    woods = [np.degrees(np.arctan(g * rng.standard_cauchy(400))) for g in (0.01, 0.03)]
+    tr = np.array([woods, [2 * w for w in woods]])  # (value, realisation, ray)
+    tl = tr / 10
+    st = np.ones_like(tr, dtype=np.int32)
+    every = [(0, np.arange(400)), (1, np.arange(400))]
+    red = np.array([_reduce(tr[k], tl[k], st[k] == 1, every) for k in range(2)])
+    ds = xr.Dataset({
+        "theta_r": (("thickness", "realisation", "ray"), tr), "theta_l": (("thickness", "realisation", "ray"), tl),
+        "status": (("thickness", "realisation", "ray"), st,
+                   {"flag_values": [1, 2, 3, 4, 5],
+                    "flag_meanings": "transmitted reflected side trapped tir_at_exit_face"}),
+        "FWHM_R": ("thickness", red[:, 0]), "FWHM_L": ("thickness", red[:, 1]), "haze": ("thickness", red[:, 2]),
+    }, coords={"thickness": [1.0, 2.0]})
+    assert per_ray(ds, "theta_r").shape == (2, 2, 400)
+    e = {x.quantity: x for x in effects("study-x", ds, n_boot=40)}
+    assert e["FWHM_R"].change == pytest.approx(100.0, abs=1.0)
+    assert e["FWHM_R"].ci[0] > 95 and e["FWHM_R"].ci[1] < 105
+
+
+def test_the_same_rays_by_both_methods_differ_by_nothing_and_doubled_by_a_hundred_percent():
+    from pipeline.report import method_rows
+
+    rng = np.random.default_rng(9)
+    r = np.degrees(np.arctan(0.02 * rng.standard_cauchy(300)))
+    acc = _study([(r, r / 5), (r, r / 5)])
+    for name in ("FWHM_R", "FWHM_L", "haze"):
+        for b in ("lower", "upper"):
+            acc[f"{name}_ci_{b}"] = acc[name]
+    same = method_rows({"study-x": acc}, {"study-x": acc}, n_boot=20)
+    assert same[0]["FWHM_R_change"] == (0.0, (0.0, 0.0))
+    pap = _study([(2 * r, r / 5), (2 * r, r / 5)])
+    for name in ("FWHM_R", "FWHM_L", "haze"):
+        for b in ("lower", "upper"):
+            pap[f"{name}_ci_{b}"] = pap[name]
+    doubled = method_rows({"study-x": acc}, {"study-x": pap}, n_boot=20)
+    assert doubled[0]["FWHM_R_change"][0] == pytest.approx(100.0, abs=1.0)
+    assert doubled[0]["FWHM_L_change"][0] == 0.0 and doubled[0]["rays_common"] == 300
+
+
 # ------------------------------------------------------------------ image quality
 def test_image_quality_of_the_ideal_image_is_perfect_and_of_grey_is_nil():
     ideal = np.ones((20, 20))

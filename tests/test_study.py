@@ -25,6 +25,7 @@ TINY = """\
 title: tiny
 preset: birch
 seed: 3
+realisations: 1
 rays: 400
 beam_um: 100
 thickness_mm: 0.3
@@ -93,16 +94,22 @@ def test_table1_files_expand_to_the_papers_values():
 def test_studies_share_the_wood_and_scenes_they_have_in_common(tmp_path):
     plans = {n: plan_study(load_study(TABLE1 / f"{n}.yaml", scale="small"), tmp_path)
              for n in ("study-1", "study-2", "study-3", "study-5-1", "study-5-2", "study-6")}
+    assert all(p.study.realisations == 2 for p in plans.values())  # at most 2 at scale small
     base = set(plans["study-1"].micros)
-    assert len(base) == 1  # every thickness reads the same wood
+    assert len(base) == 2  # every thickness reads the same two woods (common random numbers)
     assert set(plans["study-2"].micros) == base  # and so does every ΔRI
-    assert [s.micro for s in plans["study-2"].shards] == [s.micro for s in plans["study-2"].shards[:1]] * 6
-    # The base scene (1 mm, ΔRI 0.01, birch) is one cache entry in studies 1, 2 and 5-1.
-    key = {n: [s.key for s in plans[n].summaries] for n in plans}
-    assert key["study-1"][3] == key["study-2"][3] == key["study-5-1"][0] == key["study-5-2"][0]
-    assert key["study-5-2"][1] == key["study-3"][0]  # no vessels at 14.5 µm
-    assert key["study-6"][0] == key["study-1"][1]  # 0.5 mm of birch
-    assert key["study-5-1"][1] not in key["study-2"]
+    by_real = [[s.micro for s in plans["study-2"].shards if s.realisation == r] for r in (0, 1)]
+    assert by_real[0] == by_real[0][:1] * 6 and by_real[1] == by_real[1][:1] * 6 and by_real[0][0] != by_real[1][0]
+    # The base scene (1 mm, ΔRI 0.01, birch) is one cache entry in studies 1, 2 and 5-1, on each wood.
+    key = {n: {(s.scene_index, s.realisation): s.key for s in plans[n].summaries} for n in plans}
+    pool = {n: [p.key for p in plans[n].pools] for n in plans}
+    for r in (0, 1):
+        assert key["study-1"][3, r] == key["study-2"][3, r] == key["study-5-1"][0, r] == key["study-5-2"][0, r]
+        assert key["study-5-2"][1, r] == key["study-3"][0, r]  # no vessels at 14.5 µm
+        assert key["study-6"][0, r] == key["study-1"][1, r]  # 0.5 mm of birch
+    assert key["study-1"][3, 0] != key["study-1"][3, 1]
+    assert pool["study-1"][3] == pool["study-2"][3] == pool["study-5-1"][0]
+    assert key["study-5-1"][1, 0] not in key["study-2"].values()
 
 
 @pytest.mark.parametrize("text, needle", [
@@ -220,12 +227,13 @@ def test_a_failed_cache_write_leaves_no_entry(tmp_path):
 
 
 # ---------------------------------------------------------------------- pipeline on a LocalCluster
-def test_study_2_small_gives_six_finite_values_from_one_microstructure(tmp_path, client):
+def test_study_2_small_gives_six_finite_values_on_two_woods(tmp_path, client):
     cache = tmp_path / "cache"
     out, report, plan = run(TABLE1 / "study-2.yaml", cache, tmp_path / "results", client)
     assert out == tmp_path / "results" / "study-2.zarr"
     ds = xr.open_zarr(out, consolidated=False).load()
-    assert ds.sizes == {"delta_ri": 6, "ray": 100}
+    assert ds.sizes == {"delta_ri": 6, "realisation": 2, "ray": 100}
+    assert list(ds.seed_of_realisation.values) == [1, 2] and ds.attrs["realisations"] == 2
     for name in ("FWHM_R", "FWHM_L", "haze", "FWHM_R_ci_lower", "FWHM_R_ci_upper",
                  "FWHM_L_ci_lower", "FWHM_L_ci_upper", "n_transmitted", "n_lost"):
         assert np.all(np.isfinite(ds[name].values)), name
@@ -233,7 +241,9 @@ def test_study_2_small_gives_six_finite_values_from_one_microstructure(tmp_path,
     assert ds.delta_ri.attrs["units"] == "1" and ds.FWHM_R.attrs["units"] == "degree"
     assert ds.haze.attrs["units"] == "1"
     assert np.all(ds.FWHM_R_ci_lower <= ds.FWHM_R) and np.all(ds.FWHM_R <= ds.FWHM_R_ci_upper)
-    assert np.all(ds.n_transmitted + ds.n_lost == 100)
+    assert np.all(ds.n_transmitted + ds.n_lost == 200)
+    assert np.all(ds.n_transmitted == ds.n_transmitted_per_realisation.sum("realisation"))
+    assert np.all(np.isfinite(ds.FWHM_R_per_realisation.values))
     # The scattering grows with |ΔRI| and is (nearly) even in its sign.
     f = ds.FWHM_R.values
     assert f[0] > f[2] and f[5] > f[3]
@@ -241,12 +251,12 @@ def test_study_2_small_gives_six_finite_values_from_one_microstructure(tmp_path,
     assert ds.attrs["source"].startswith("twray ") and ds.attrs["seed"] == 1
     assert json.loads(ds.attrs["trace_settings"])["method"] == "accurate"
     keys = json.loads(ds.attrs["cache_keys"])
-    # One microstructure for the six values, generated once: every chunk on disk was
-    # generated exactly one time (one worker process, two threads).
-    assert len({k["micro"] for k in keys}) == 1
-    assert len(list((cache / "micro").iterdir())) == 1
+    # One microstructure per realisation for the six values, generated once: every chunk on
+    # disk was generated exactly one time (one worker process, two threads).
+    assert len({r["micro"] for k in keys for r in k["realisations"]}) == 2
+    assert len(list((cache / "micro").iterdir())) == 2
     assert report["chunks_generated"] == len(stored_chunks(cache)) > 0
-    assert report["trace_tasks"] == 6 and report["summary_tasks"] == 6
+    assert report["trace_tasks"] == 12 and report["summary_tasks"] == 12 and report["pool_tasks"] == 6
     # The per-ray angles are there for re-analysis and agree with the fits' inputs.
     t = ds.status.values == 1
     assert np.all(np.isfinite(ds.theta_r.values[t]))
@@ -271,7 +281,8 @@ def test_unchanged_rerun_computes_nothing_and_a_new_value_traces_only_itself(tmp
     capsys.readouterr()
     assert main(args + ["--dry-run"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 2 and all("1/1 shards cached; summary cached" in ln for ln in lines)
+    assert len(lines) == 4 and all("1/1 shards cached; summary cached" in ln for ln in lines[:2])
+    assert all(ln.endswith("1 realisations pooled cached") for ln in lines[2:])
 
     # Add a value: only it is traced; the wood and the other value are reused.
     tiny(tmp_path, [0.01, 0.02, 0.03])
@@ -280,7 +291,7 @@ def test_unchanged_rerun_computes_nothing_and_a_new_value_traces_only_itself(tmp
     assert [s.cached for s in plan.summaries] == [True, False, True]
     assert [s.cached for s in plan.shards] == [True, False, True]
     assert main(args + ["--dry-run"]) == 0
-    assert "delta_ri=0.02: micro" in capsys.readouterr().out
+    assert "delta_ri=0.02 realisation 0: micro" in capsys.readouterr().out
     assert main(args) == 0
     for p, t in entries.items():
         assert p.stat().st_mtime_ns == t, p  # nothing recomputed or rewritten
@@ -318,7 +329,7 @@ def test_a_study_equals_the_trace_command_for_the_same_scene(tmp_path, client, c
 
 def test_dataset_coordinates_for_booleans_and_laminates(tmp_path, client):
     path = tmp_path / "lam.yaml"
-    path.write_text("rays: 200\nbeam_um: 60\nthickness_mm: 0.2\ntrace: {method: fast}\n"
+    path.write_text("rays: 200\nbeam_um: 60\nthickness_mm: 0.2\ntrace: {method: fast}\nrealisations: 1\n"
                     "vary:\n  parameter: laminate\n  values: [none, '[0/90]']\n")
     out, _, plan = run(path, tmp_path / "c", tmp_path / "r", client)
     ds = xr.open_zarr(out, consolidated=False)
@@ -424,5 +435,5 @@ def test_a_study_prints_its_estimate_and_asks_for_yes_above_the_threshold(tmp_pa
     monkeypatch.setenv("TWRAY_CONFIRM_CPU_HOURS", "0")
     assert main(args) == 2
     err = capsys.readouterr().err
-    assert "`study` needs ~" in err and "CPU-s of CPU" in err and "add --yes to run it" in err
+    assert "`study` needs ~" in err and "CPU-s of CPU" in err and "add --yes (with make: YES=1) to run it" in err
     assert not (tmp_path / "r").exists()

@@ -16,6 +16,7 @@ STUDY = """\
 title: to a target
 preset: birch
 seed: 3
+realisations: 1
 rays: 200
 beam_um: 100
 thickness_mm: 0.3

@@ -15,7 +15,11 @@ what it depends on plus the stage's version:
     size (every ray's position is a hash of the seed and its index).
 ``summary``
     The scene's FWHM_R, FWHM_L (Lorentz fits, bootstrap CIs), haze and
-    counts, as JSON.
+    counts, as JSON: one per value and wood realisation.
+``pool``
+    A value's realisations pooled (:func:`pipeline.analysis.pool`): its
+    FWHM_R, FWHM_L and haze with intervals that hold the wood-to-wood
+    variation (a hierarchical bootstrap) and the ray sampling alone, as JSON.
 
 Every entry is written to a temporary name and renamed into place, so a
 crash leaves whole entries or none, and is verified when it is read: it
@@ -48,7 +52,8 @@ from .spec import Scene, Study, scene_record
 # the total, so a study traced to a target reuses its earlier shards).  Summary 3: haze CI.
 # Micro 3: wood without ray cells keeps the vessels and fibre distortion of the same wood with
 # them (ray columns are a property of the lattice); wood with ray cells holds the same voxels.
-VERSIONS = {"micro": "3", "rays": "3", "summary": "3"}
+# Pool 1: wood realisations pooled.
+VERSIONS = {"micro": "3", "rays": "3", "summary": "3", "pool": "1"}
 CHUNKS = (64, 64, 64)
 N_BOOT = 200
 COLUMN_BATCH = 16  # chunks per microstructure task
@@ -73,6 +78,7 @@ class Shard:
     micro: str
     cached: bool
     record: dict = field(default_factory=dict)  # what the key hashes (provenance)
+    realisation: int = 0
 
 
 @dataclass
@@ -81,6 +87,19 @@ class Summary:
     path: Path
     scene_index: int
     shards: list
+    cached: bool
+    record: dict = field(default_factory=dict)
+    realisation: int = 0
+
+
+@dataclass
+class Pool:
+    """A value's realisations pooled."""
+
+    key: str
+    path: Path
+    scene_index: int
+    summaries: list  # summary keys, realisation 0 first
     cached: bool
     record: dict = field(default_factory=dict)
 
@@ -93,21 +112,30 @@ class Plan:
     micros: dict
     shards: list
     summaries: list
+    pools: list = field(default_factory=list)
 
     @property
     def up_to_date(self) -> bool:
         return (all(s.cached for s in self.shards) and all(s.cached for s in self.summaries)
-                and not any(m.todo for m in self.micros.values()))
+                and all(p.cached for p in self.pools) and not any(m.todo for m in self.micros.values()))
 
     def shards_of(self, summ: "Summary") -> list:
-        return [s for s in self.shards if s.scene_index == summ.scene_index]
+        return [s for s in self.shards
+                if s.scene_index == summ.scene_index and s.realisation == summ.realisation]
+
+    def summaries_of(self, pool: "Pool") -> list:
+        """The summaries of a value, realisation 0 first."""
+        return sorted((s for s in self.summaries if s.scene_index == pool.scene_index),
+                      key=lambda s: s.realisation)
 
     def keys(self) -> list[dict]:
         """The cache keys behind each value (provenance)."""
         coord = self.study.coordinate()
-        return [{"value": str(coord[summ.scene_index]), "micro": self.shards_of(summ)[0].micro,
-                 "rays": [s.key for s in self.shards_of(summ)], "summary": summ.key}
-                for summ in self.summaries]
+        return [{"value": str(coord[pool.scene_index]), "pool": pool.key,
+                 "realisations": [{"micro": self.shards_of(summ)[0].micro,
+                                   "rays": [s.key for s in self.shards_of(summ)], "summary": summ.key}
+                                  for summ in self.summaries_of(pool)]}
+                for pool in self.pools]
 
 
 def wood_record(wood, seed: int, voxel_um: float) -> dict:
@@ -160,7 +188,8 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
     micros: dict[str, Micro] = {}
     shards: list[Shard] = []
     summaries: list[Summary] = []
-    for i, scene in enumerate(study.scenes):
+    for i, r in ((i, r) for i in range(len(study.scenes)) for r in range(study.realisations)):
+        scene = study.realisation(i, r)
         mkey = cache_key(micro_record(scene))
         m = micros.setdefault(mkey, Micro(mkey, cache_dir / "micro" / f"{mkey}.zarr", scene))
         m.column = sorted(set(m.column) | _column(scene))
@@ -177,15 +206,25 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
             record = {**base, "range": [lo, hi]}
             key = cache_key(record)
             path = cache_dir / "rays" / f"{key}.npz"
-            shards.append(Shard(key, path, i, lo, hi, mkey, sound(check_npz, path, key), record))
+            shards.append(Shard(key, path, i, lo, hi, mkey, sound(check_npz, path, key), record, r))
             keys.append(key)
         srecord = {"stage": "summary", "version": VERSIONS["summary"], "rays": keys, "n_boot": N_BOOT,
                    "seed": scene.seed}
         skey = cache_key(srecord)
         spath = cache_dir / "summary" / f"{skey}.json"
         # A summary is reused with every shard of it sound (the Dataset reads the rays too).
-        cached = sound(check_json, spath, skey) and all(s.cached for s in shards if s.scene_index == i)
-        summaries.append(Summary(skey, spath, i, keys, cached, srecord))
+        cached = sound(check_json, spath, skey) and all(
+            s.cached for s in shards if s.scene_index == i and s.realisation == r)
+        summaries.append(Summary(skey, spath, i, keys, cached, srecord, r))
+    pools = []
+    for i, scene in enumerate(study.scenes):
+        mine = sorted((s for s in summaries if s.scene_index == i), key=lambda s: s.realisation)
+        precord = {"stage": "pool", "version": VERSIONS["pool"], "summaries": [s.key for s in mine],
+                   "n_boot": N_BOOT, "seed": scene.seed}
+        pkey = cache_key(precord)
+        ppath = cache_dir / "pool" / f"{pkey}.json"
+        pools.append(Pool(pkey, ppath, i, [s.key for s in mine],
+                          sound(check_json, ppath, pkey) and all(s.cached for s in mine), precord))
     for m in micros.values():
         needed = any(not s.cached for s in shards if s.micro == m.key)
         if needed:
@@ -195,7 +234,7 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
                 m.todo = [c for c in m.column if not store.stored(c)]
             else:
                 m.todo = list(m.column)
-    return Plan(study, micros, shards, summaries)
+    return Plan(study, micros, shards, summaries, pools)
 
 
 def _store(m: Micro) -> WoodChunkStore:
@@ -252,6 +291,17 @@ def load_rays(shards, settings):
     return RayResult(**cat, settings=settings), int(sum(p["chunks_generated"] for p in parts))
 
 
+def pool_value(settings, pool: Pool, shards: list, *summarised) -> dict:
+    """Pool a value's realisations (``shards``: one list per realisation, realisation 0
+    first) once ``summarised``, the summaries computed now, are in."""
+    from ..analysis import pool as pool_results
+
+    results = [load_rays(part, settings)[0] for part in shards]
+    out = pool_results(results, n_boot=N_BOOT, seed=pool.record["seed"])
+    write_json(pool.path, pool.record, out)
+    return {"pool": out, "chunks_generated": int(sum(s["chunks_generated"] for s in summarised))}
+
+
 def summarize_scene(scene: Scene, summ: Summary, shards: list, *traced) -> dict:
     """Reduce a scene's shards (read back from the cache once ``traced``, the chunks
     generated by each shard traced now, are in)."""
@@ -270,8 +320,9 @@ class Graph:
     """The Dask tasks computing the missing stages of some plans."""
 
     micro: list  # delayed chunk counts
-    summaries: list  # delayed {"summary": ..., "chunks_generated": ...}
+    summaries: list  # delayed {"pool": ..., "chunks_generated": ...}, one per value
     n_trace: int
+    n_summaries: int = 0
 
 
 def build_graph(plans: list[Plan]) -> Graph:
@@ -300,12 +351,14 @@ def build_graph(plans: list[Plan]) -> Graph:
                 arg, chunks[i:i + COLUMN_BATCH], dask_key_name=f"micro-{key[:12]}-{i // COLUMN_BATCH}")
             for i in range(0, len(chunks), COLUMN_BATCH)]
     summaries = []
+    pools = []
     n_trace = 0
     for plan in plans:
+        done = {}
         for summ in plan.summaries:
             if summ.cached:
                 continue
-            scene = constant(plan.study.scenes[summ.scene_index], f"scene-{summ.key[:12]}")
+            scene = constant(plan.study.realisation(summ.scene_index, summ.realisation), f"scene-{summ.key[:12]}")
             traced = []
             for shard in plan.shards_of(summ):
                 if not shard.cached:
@@ -314,11 +367,21 @@ def build_graph(plans: list[Plan]) -> Graph:
                         micro_args[shard.micro], scene, constant(shard, f"shard-{shard.key[:12]}"),
                         *micro_tasks[shard.micro], dask_key_name=f"rays-{shard.key[:12]}"))
             shards = constant(plan.shards_of(summ), f"shards-{summ.key[:12]}")
-            summaries.append(dask.delayed(summarize_scene, pure=False)(
+            done[summ.key] = dask.delayed(summarize_scene, pure=False)(
                 scene, constant(summ, f"summ-{summ.key[:12]}"), shards, *traced,
-                dask_key_name=f"summary-{summ.key[:12]}"))
+                dask_key_name=f"summary-{summ.key[:12]}")
+            summaries.append(done[summ.key])
+        settings = plan.study.scenes[0].settings
+        for pool in plan.pools:
+            if pool.cached:
+                continue
+            mine = plan.summaries_of(pool)
+            shards = constant([plan.shards_of(s) for s in mine], f"pool-shards-{pool.key[:12]}")
+            pools.append(dask.delayed(pool_value, pure=False)(
+                constant(settings, f"settings-{pool.key[:12]}"), constant(pool, f"poolarg-{pool.key[:12]}"), shards,
+                *[done[s.key] for s in mine if s.key in done], dask_key_name=f"pool-{pool.key[:12]}"))
     micro = [t for ts in micro_tasks.values() for t in ts]
-    return Graph(micro, summaries, n_trace)
+    return Graph(micro, pools, n_trace, len(summaries))
 
 
 def describe_plan(plan: Plan) -> list[str]:
@@ -326,16 +389,18 @@ def describe_plan(plan: Plan) -> list[str]:
     lines = []
     st = plan.study
     for summ in plan.summaries:
-        scene = st.scenes[summ.scene_index]
         shards = plan.shards_of(summ)
         m = plan.micros[shards[0].micro]
         n_col = len(m.column)
         micro = (f"micro {m.key[:8]} {n_col - len(m.todo)}/{n_col} beam chunks cached"
                  if any(not s.cached for s in shards) else f"micro {m.key[:8]} not needed")
         rays = sum(s.cached for s in shards)
-        lines.append(f"{st.name} {st.dimension}={st.coordinate()[summ.scene_index]}: {micro}; "
-                     f"rays {rays}/{len(shards)} shards cached; summary "
+        lines.append(f"{st.name} {st.dimension}={st.coordinate()[summ.scene_index]} realisation "
+                     f"{summ.realisation}: {micro}; rays {rays}/{len(shards)} shards cached; summary "
                      f"{'cached' if summ.cached else 'to compute'}")
+    for pool in plan.pools:
+        lines.append(f"{st.name} {st.dimension}={st.coordinate()[pool.scene_index]}: "
+                     f"{st.realisations} realisations pooled {'cached' if pool.cached else 'to compute'}")
     return lines
 
 
@@ -347,7 +412,7 @@ def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
     """
     graph = build_graph(plans)
     report = {"micro_tasks": len(graph.micro), "trace_tasks": graph.n_trace,
-              "summary_tasks": len(graph.summaries), "chunks_generated": 0}
+              "summary_tasks": graph.n_summaries, "pool_tasks": len(graph.summaries), "chunks_generated": 0}
     if not graph.micro and not graph.summaries:
         return report
     from ..progress import follow, graph_keys
@@ -373,21 +438,30 @@ def widen(plan: Plan) -> Study | None:
     rays = st.scenes[0].rays
     if target is None or rays >= target.max_rays:
         return None
-    if all(target.met(row) for row in summary_rows(plan)):
+    if all(target.met(ray_sampling(row)) for row in summary_rows(plan)):
         return None
     return with_rays(st, min(2 * rays, target.max_rays))
 
 
 def summary_rows(plan: Plan) -> list[dict]:
-    """The cached summary of each value, with the value, in the study's order."""
+    """The pooled numbers of each value (its realisations pooled), with the value, in the
+    study's order."""
     coord = plan.study.coordinate()
-    return [{"value": coord[summ.scene_index], **_summary(summ)} for summ in plan.summaries]
+    return [{"value": coord[pool.scene_index], **_summary(pool)} for pool in plan.pools]
 
 
-def _summary(summ: Summary) -> dict:
-    value = read_json(summ.path, summ.key)
+def ray_sampling(row: dict) -> dict:
+    """``row`` with the intervals of the ray sampling alone: what more rays narrow (a
+    ``target_ci`` is a precision of the ray sampling; the wood-to-wood part needs more
+    realisations)."""
+    return {**row, "fwhm_r_ci_deg": row["fwhm_r_ray_ci_deg"], "fwhm_l_ci_deg": row["fwhm_l_ray_ci_deg"],
+            "haze_ci": row["haze_ray_ci"]}
+
+
+def _summary(entry) -> dict:
+    value = read_json(entry.path, entry.key)
     if value is None:
-        raise DamagedEntry(f"cache entry {summ.path} was damaged during the run; run again to recompute it")
+        raise DamagedEntry(f"cache entry {entry.path} was damaged during the run; run again to recompute it")
     return value
 
 
@@ -405,40 +479,73 @@ def report_table(plans: list[Plan]) -> str:
                 f"{100 * row['haze']:.1f} [{100 * row['haze_ci'][0]:.1f}, {100 * row['haze_ci'][1]:.1f}] | "
                 f"{row['n_transmitted']}/{row['n_rays']} |")
     s0 = plans[0].study.scenes[0]
+    n_real = plans[0].study.realisations
     lines.append("")
-    lines.append(f"twray {__version__}, scale {plans[0].study.scale}, {s0.rays} rays, method "
+    lines.append(f"twray {__version__}, scale {plans[0].study.scale}, {s0.rays} rays on each of "
+                 f"{n_real} wood realisation{'' if n_real == 1 else 's'} (seeds {s0.seed}-{s0.seed + n_real - 1}, "
+                 f"pooled; intervals include the wood-to-wood variation), method "
                  f"{s0.settings.method}, angles {s0.settings.exit}.")
     return "\n".join(lines) + "\n"
 
 
 # ---------------------------------------------------------------------- dataset
 def study_dataset(plan: Plan):
-    """The study's xarray Dataset from its cached entries."""
+    """The study's xarray Dataset from its cached entries.
+
+    Dimensions: the varied parameter, ``realisation`` (the wood drawn with seed
+    ``seed + realisation``) and ``ray``.  FWHM_R, FWHM_L and haze are the
+    realisations pooled, with intervals that include the wood-to-wood variation
+    (``*_ci_lower``/``*_ci_upper``) and of the ray sampling alone
+    (``*_ray_ci_*``); ``*_per_realisation`` are each realisation's own.
+    """
     import xarray as xr
 
     from ..optics.tracer import STATUS_NAMES
 
     st = plan.study
     dim = st.dimension
-    rows = []
-    for summ in plan.summaries:
-        scene = st.scenes[summ.scene_index]
-        result, _ = load_rays(plan.shards_of(summ), scene.settings)
-        rows.append((_summary(summ), result))
+    R = st.realisations
+    pooled, each, rays = [], [], []
+    for pool in plan.pools:
+        pooled.append(_summary(pool))
+        mine = plan.summaries_of(pool)
+        each.append([_summary(s) for s in mine])
+        rays.append([load_rays(plan.shards_of(s), st.scenes[0].settings)[0] for s in mine])
     codes = sorted(STATUS_NAMES)
-    per_scene = {  # name: (value of a summary, long_name, units)
-        "FWHM_R": (lambda s: s["fwhm_r_deg"], "FWHM of the Lorentz fit to theta_R", "degree"),
-        "FWHM_L": (lambda s: s["fwhm_l_deg"], "FWHM of the Lorentz fit to theta_L", "degree"),
-        "haze": (lambda s: s["haze"], "fraction of transmitted rays deviating more than 2.5 degree", "1"),
-        "haze_ci_lower": (lambda s: s["haze_ci"][0], "Wilson 95 % interval of haze, lower", "1"),
-        "haze_ci_upper": (lambda s: s["haze_ci"][1], "Wilson 95 % interval of haze, upper", "1"),
-        "FWHM_R_ci_lower": (lambda s: s["fwhm_r_ci_deg"][0], "bootstrap 95 % interval of FWHM_R, lower", "degree"),
-        "FWHM_R_ci_upper": (lambda s: s["fwhm_r_ci_deg"][1], "bootstrap 95 % interval of FWHM_R, upper", "degree"),
-        "FWHM_L_ci_lower": (lambda s: s["fwhm_l_ci_deg"][0], "bootstrap 95 % interval of FWHM_L, lower", "degree"),
-        "FWHM_L_ci_upper": (lambda s: s["fwhm_l_ci_deg"][1], "bootstrap 95 % interval of FWHM_L, upper", "degree"),
-        "n_transmitted": (lambda s: s["n_transmitted"], "rays leaving through the far L-R face", "1"),
-        "n_lost": (lambda s: s["n_lost"], "rays not transmitted (reflected, side, trapped)", "1"),
-        "interfaces_per_ray": (lambda s: s["interfaces_per_ray"], "mean interfaces met per ray", "1"),
+    hier = "hierarchical bootstrap (realisations, then rays) 95 % interval"
+    per_value = {  # name: (value of a pooled summary, long_name, units)
+        "FWHM_R": (lambda s: s["fwhm_r_deg"], "FWHM of the Lorentz fit to theta_R, realisations pooled", "degree"),
+        "FWHM_L": (lambda s: s["fwhm_l_deg"], "FWHM of the Lorentz fit to theta_L, realisations pooled", "degree"),
+        "haze": (lambda s: s["haze"], "fraction of transmitted rays deviating more than 2.5 degree, "
+                                      "realisations pooled", "1"),
+        "FWHM_R_ci_lower": (lambda s: s["fwhm_r_ci_deg"][0], f"{hier} of FWHM_R, lower", "degree"),
+        "FWHM_R_ci_upper": (lambda s: s["fwhm_r_ci_deg"][1], f"{hier} of FWHM_R, upper", "degree"),
+        "FWHM_L_ci_lower": (lambda s: s["fwhm_l_ci_deg"][0], f"{hier} of FWHM_L, lower", "degree"),
+        "FWHM_L_ci_upper": (lambda s: s["fwhm_l_ci_deg"][1], f"{hier} of FWHM_L, upper", "degree"),
+        "haze_ci_lower": (lambda s: s["haze_ci"][0], f"{hier} of haze, lower", "1"),
+        "haze_ci_upper": (lambda s: s["haze_ci"][1], f"{hier} of haze, upper", "1"),
+        "FWHM_R_ray_ci_lower": (lambda s: s["fwhm_r_ray_ci_deg"][0],
+                                "bootstrap 95 % interval of FWHM_R over rays alone, lower", "degree"),
+        "FWHM_R_ray_ci_upper": (lambda s: s["fwhm_r_ray_ci_deg"][1],
+                                "bootstrap 95 % interval of FWHM_R over rays alone, upper", "degree"),
+        "FWHM_L_ray_ci_lower": (lambda s: s["fwhm_l_ray_ci_deg"][0],
+                                "bootstrap 95 % interval of FWHM_L over rays alone, lower", "degree"),
+        "FWHM_L_ray_ci_upper": (lambda s: s["fwhm_l_ray_ci_deg"][1],
+                                "bootstrap 95 % interval of FWHM_L over rays alone, upper", "degree"),
+        "haze_ray_ci_lower": (lambda s: s["haze_ray_ci"][0], "Wilson 95 % interval of haze over rays alone, lower", "1"),
+        "haze_ray_ci_upper": (lambda s: s["haze_ray_ci"][1], "Wilson 95 % interval of haze over rays alone, upper", "1"),
+        "n_transmitted": (lambda s: s["n_transmitted"], "rays leaving through the far L-R face, all realisations", "1"),
+        "n_lost": (lambda s: s["n_lost"], "rays not transmitted (reflected, side, trapped), all realisations", "1"),
+        "interfaces_per_ray": (lambda s: s["interfaces_per_ray"], "mean interfaces met per ray, all realisations", "1"),
+    }
+    per_realisation = {  # name: (value of a realisation's summary, long_name, units)
+        "FWHM_R_per_realisation": (lambda s: s["fwhm_r_deg"], "FWHM_R of each realisation", "degree"),
+        "FWHM_L_per_realisation": (lambda s: s["fwhm_l_deg"], "FWHM_L of each realisation", "degree"),
+        "haze_per_realisation": (lambda s: s["haze"], "haze of each realisation", "1"),
+        "interfaces_per_ray_per_realisation": (lambda s: s["interfaces_per_ray"],
+                                               "mean interfaces met per ray in each realisation", "1"),
+        "n_transmitted_per_realisation": (lambda s: s["n_transmitted"],
+                                          "rays transmitted in each realisation", "1"),
     }
     per_ray = {  # name: (values of a RayResult, attributes)
         "theta_r": (lambda r: r.theta_r, {"long_name": "exit angle in the R-T plane from +T", "units": "degree"}),
@@ -448,18 +555,25 @@ def study_dataset(plan: Plan):
             "long_name": "ray status", "flag_values": codes,
             "flag_meanings": " ".join(STATUS_NAMES[c] for c in codes)}),
     }
-    data = {name: (dim, np.array([get(s) for s, _ in rows]), {"long_name": ln, "units": u})
-            for name, (get, ln, u) in per_scene.items()}
-    data.update({name: ((dim, "ray"), np.array([get(r) for _, r in rows]), attrs)
+    data = {name: (dim, np.array([get(s) for s in pooled]), {"long_name": ln, "units": u})
+            for name, (get, ln, u) in per_value.items()}
+    data.update({name: ((dim, "realisation"), np.array([[get(s) for s in row] for row in each]),
+                        {"long_name": ln, "units": u})
+                 for name, (get, ln, u) in per_realisation.items()})
+    data.update({name: ((dim, "realisation", "ray"), np.array([[get(r) for r in row] for row in rays]), attrs)
                  for name, (get, attrs) in per_ray.items()})
     coord = st.coordinate()
     if any(isinstance(c, str) for c in coord):
         coord = np.array(coord, dtype=object)  # variable-length strings (laminate notation)
-    n_rays = len(rows[0][1].status)
+    n_rays = len(rays[0][0].status)
+    seed = st.scenes[0].seed
     ds = xr.Dataset(
         data,
         coords={
             dim: (dim, coord, {"long_name": st.long_name, **({"units": st.units} if st.units else {})}),
+            "realisation": ("realisation", np.arange(R), {
+                "long_name": "wood realisation: the wood and beam of seed `seed` + realisation"}),
+            "seed_of_realisation": ("realisation", seed + np.arange(R), {"long_name": "seed of the realisation"}),
             "ray": ("ray", np.arange(n_rays), {"long_name": "ray index in the beam"}),
         },
         attrs={
@@ -469,7 +583,8 @@ def study_dataset(plan: Plan):
             "study": st.name,
             "study_yaml": st.text,
             "scale": st.scale,
-            "seed": st.scenes[0].seed,
+            "seed": seed,
+            "realisations": R,
             "trace_settings": json.dumps(dataclasses.asdict(st.scenes[0].settings)),
             "exit_angles": st.scenes[0].settings.exit,
             "cache_keys": json.dumps(plan.keys()),
@@ -479,18 +594,19 @@ def study_dataset(plan: Plan):
     from ..analysis import HAZE_ANGLE_DEG
     from ..provenance import link_intervals, provenance_attrs
 
-    ds.attrs.update(provenance_attrs({"study": st.name, "scale": st.scale,
+    ds.attrs.update(provenance_attrs({"study": st.name, "scale": st.scale, "realisations": R,
                                       "scenes": [scene_record(s) for s in st.scenes]}))
     link_intervals(ds, 0.95, N_BOOT)
-    for bound in ("haze_ci_lower", "haze_ci_upper"):
-        del ds[bound].attrs["bootstrap_resamples"]
+    for bound in ("haze_ray_ci_lower", "haze_ray_ci_upper") + (
+            ("haze_ci_lower", "haze_ci_upper") if R == 1 else ()):
+        ds[bound].attrs.pop("bootstrap_resamples", None)
         ds[bound].attrs["interval"] = "Wilson score (binomial)"
     ds["haze"].attrs["threshold_deg"] = HAZE_ANGLE_DEG
     target = st.scenes[0].target
     ds.attrs["rays"] = n_rays
     if target is not None:
         ds.attrs["target_ci"] = json.dumps(target.to_dict())
-        ds.attrs["target_ci_met"] = int(all(target.met(s) for s, _ in rows))
+        ds.attrs["target_ci_met"] = int(all(target.met(ray_sampling(s)) for s in pooled))
     return ds
 
 

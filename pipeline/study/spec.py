@@ -12,11 +12,15 @@ A study file declares a base scene and one parameter to vary::
     rays: 1000
     beam_um: 150
     voxel_um: 0.5
+    realisations: 5          # woods per value: seeds seed, seed + 1, ...
     trace: {method: accurate, exit: internal, fresnel: false}
     vary: {parameter: delta_ri, values: [-0.03, -0.02, -0.01, 0.01, 0.02, 0.03]}
 
 The numbers are the paper's scale; ``--scale small`` keeps the wood and
-divides the rays, thickness and beam (see :data:`SCALES`).  Every unknown
+divides the rays, thickness and beam, and traces at most 2 realisations (see
+:data:`SCALES`).  Every value is traced on the same realisations (realisation
+r is the wood and beam of seed ``seed + r``), so differences between values
+are paired: common random numbers.  Every unknown
 key or bad value raises :class:`~pipeline.params.ParameterError` naming the
 file, the line and the field.
 """
@@ -36,12 +40,14 @@ from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, loa
 
 # What each scale does to the paper-scale numbers of a study file.
 SCALES = {
-    "paper": {"rays": 1.0, "thickness": 1.0, "beam": 1.0},
-    "small": {"rays": 0.1, "thickness": 0.1, "beam": 0.25},
+    "paper": {"rays": 1.0, "thickness": 1.0, "beam": 1.0, "realisations": None},
+    "small": {"rays": 0.1, "thickness": 0.1, "beam": 0.25, "realisations": 2},
 }
+# Wood realisations per value when a study file does not say (at most the scale's cap).
+REALISATIONS = 5
 
 _TOP = {"title", "description", "preset", "wood", "seed", "thickness_mm", "delta_ri",
-        "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary", "target_ci"}
+        "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary", "target_ci", "realisations"}
 _TRACE = {"method", "exit", "fresnel", "refine", "step_vox"}
 _SCENE_VARIABLES = {
     # name: (dimension, units, long_name)
@@ -66,6 +72,7 @@ class Scene:
     beam_um: float
     settings: TraceSettings
     target: Target | None = None  # trace to this precision: `rays` is then the first batch
+    realisation: int = 0  # which wood of the study's realisations (seed = study seed + realisation)
 
     @property
     def n_wall(self) -> float:
@@ -88,7 +95,17 @@ class Study:
     dimension: str
     units: str
     long_name: str
-    scenes: tuple[Scene, ...]
+    scenes: tuple[Scene, ...]  # one per value, each on realisation 0
+    realisations: int = 1
+
+    def realisation(self, index: int, r: int) -> Scene:
+        """Value ``index`` on wood realisation ``r``: the wood and beam of seed ``seed + r``."""
+        s = self.scenes[index]
+        return dataclasses.replace(s, seed=s.seed + r, realisation=r)
+
+    def all_scenes(self) -> list[Scene]:
+        """Every traced scene: each value on each realisation."""
+        return [self.realisation(i, r) for i in range(len(self.scenes)) for r in range(self.realisations)]
 
     def coordinate(self) -> list:
         """The varied values as a dimension coordinate (laminates as their ply notation)."""
@@ -101,8 +118,15 @@ class Study:
         return out
 
 
-def load_study(path, *, scale: str = "paper") -> Study:
-    """Read and validate a study file; expand it into scenes at ``scale``."""
+def load_study(path, *, scale: str = "paper", realisations: int | None = None, method: str | None = None,
+               rays: int | None = None) -> Study:
+    """Read and validate a study file; expand it into scenes at ``scale``.
+
+    The command line's overrides: ``realisations`` (``--realisations``) replaces the
+    file's ``realisations`` and the scale's cap, ``method`` (``--method``) its
+    ``trace.method``, and ``rays`` (``--rays``) the rays traced per value and
+    realisation (not scaled).
+    """
     path = Path(path)
     if scale not in SCALES:
         raise ParameterError(f"`scale` must be one of {', '.join(SCALES)}, got scale={scale!r}")
@@ -130,6 +154,21 @@ def load_study(path, *, scale: str = "paper") -> Study:
     seed = data.get("seed", 1)
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
         fail(("seed",), f"`seed` must be an integer in [0, 2**63), got {seed!r}")
+    n_real = data.get("realisations", REALISATIONS)
+    if isinstance(n_real, bool) or not isinstance(n_real, int) or not 1 <= n_real <= 1000:
+        fail(("realisations",), f"`realisations` must be an integer in [1, 1000], got {n_real!r}")
+    if SCALES[scale]["realisations"] is not None:
+        n_real = min(n_real, SCALES[scale]["realisations"])
+    if realisations is not None:
+        if isinstance(realisations, bool) or not isinstance(realisations, int) or not 1 <= realisations <= 1000:
+            raise ParameterError(f"`realisations` must be an integer in [1, 1000], got realisations={realisations!r}")
+        n_real = realisations
+    if seed + n_real > 2**63:
+        fail(("seed",), f"`seed` + `realisations` must be below 2**63, got seed={seed}")
+    rays_override = rays
+    if rays_override is not None and (isinstance(rays_override, bool) or not isinstance(rays_override, int)
+                                      or rays_override < 1):
+        raise ParameterError(f"`rays` must be a positive integer, got rays={rays_override!r}")
     rays = data.get("rays", 1000)
     if isinstance(rays, bool) or not isinstance(rays, int) or rays < 1:
         fail(("rays",), f"`rays` must be a positive integer, got {rays!r}")
@@ -163,7 +202,11 @@ def load_study(path, *, scale: str = "paper") -> Study:
     for k in trace:
         if k not in _TRACE:
             fail(("trace", k), f"unknown key `trace.{k}` (known: {', '.join(sorted(_TRACE))})")
-    method = trace.get("method", "accurate")
+    if method is not None:
+        if method not in PRESETS:
+            raise ParameterError(f"`method` must be one of {', '.join(PRESETS)}, got method={method!r}")
+    else:
+        method = trace.get("method", "accurate")
     if method not in PRESETS:
         fail(("trace", "method"), f"`trace.method` must be one of {', '.join(PRESETS)}, got {method!r}")
     if "fresnel" in trace and not isinstance(trace["fresnel"], bool):
@@ -199,6 +242,8 @@ def load_study(path, *, scale: str = "paper") -> Study:
 
     f = SCALES[scale]
     n_rays = max(1, int(round(rays * f["rays"])))
+    if rays_override is not None:
+        n_rays = rays_override
     target = _target(data.get("target_ci"), n_rays, f["rays"], fail) if "target_ci" in data else None
     scenes = []
     seen = set()
@@ -266,7 +311,7 @@ def load_study(path, *, scale: str = "paper") -> Study:
         fail(("title",), f"`title` must be a string, got {title!r}")
     return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
                  parameter=parameter, dimension=dimension, units=units, long_name=long_name,
-                 scenes=tuple(scenes))
+                 scenes=tuple(scenes), realisations=n_real)
 
 
 def _target(value, n_rays: int, factor: float, fail) -> Target:
