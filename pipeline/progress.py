@@ -40,16 +40,16 @@ def line(label: str, done: int, total: int, elapsed: float) -> str:
 
 
 def _pending(dask_scheduler, keys) -> tuple[list, list]:
-    """Which of ``keys`` the scheduler holds, and which of those it has still to compute
-    (finished ones are in memory or, once used, forgotten)."""
-    held, pending = [], []
+    """Which of ``keys`` the scheduler holds, and which of those are finished (in memory,
+    erred or forgotten)."""
+    held, finished = [], []
     for k in keys:
         ts = dask_scheduler.tasks.get(k)
         if ts is not None:
             held.append(k)
-            if ts.state not in ("memory", "erred", "forgotten"):
-                pending.append(k)
-    return held, pending
+            if ts.state in ("memory", "erred", "forgotten"):
+                finished.append(k)
+    return held, finished
 
 
 def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRESS_EVERY_S) -> None:
@@ -65,6 +65,7 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
         return
     keys = list(keys)
     seen: set = set()
+    done_keys: set = set()
     t0 = time.perf_counter()
     while True:
         try:
@@ -74,11 +75,13 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
             finished = False
         if finished:
             break
-        held, pending = client.run_on_scheduler(_pending, keys=keys)
+        held, ended = client.run_on_scheduler(_pending, keys=keys)
         # A key the scheduler has not held yet (a large graph is still arriving) is to do; one
-        # it held and has dropped is done.
+        # that finished, or that it held and has dropped (its result used and released), is done.
+        done_keys.update(ended)
+        done_keys.update(seen.difference(held))
         seen.update(held)
-        done = len(seen) - len(pending)
+        done = len(done_keys)
         print(line(label, done, len(keys), time.perf_counter() - t0), file=sys.stderr, flush=True)
     print(line(label, len(keys), len(keys), time.perf_counter() - t0), file=sys.stderr, flush=True)
 

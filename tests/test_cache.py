@@ -230,13 +230,14 @@ def test_cache_ls_verify_and_gc(tmp_path, capsys):
     capsys.readouterr()
     assert main(["cache", "ls", "--cache", str(cache), "--json"]) == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
-    assert sorted(r["stage"] for r in rows) == ["micro", "rays", "summary"]
+    assert sorted(r["stage"] for r in rows) == ["micro", "pool", "rays", "summary"]
     about = {r["stage"]: r["about"] for r in rows}
     assert "birch wood, seed 3, 0.5 um voxels" in about["micro"] and "fast" in about["rays"]
+    assert about["pool"] == "1 wood realisations pooled, 200 bootstrap draws"
     assert all(r["bytes"] > 0 for r in rows)
 
     assert main(["cache", "verify", "--cache", str(cache)]) == 0
-    assert "3 entries verified, 0 damaged" in capsys.readouterr().err
+    assert "4 entries verified, 0 damaged" in capsys.readouterr().err
     ray = next(Path(r["path"]) for r in rows if r["stage"] == "rays")
     chunk = next((cache / "micro").rglob("c/*/*/*"))
     raw = bytearray(chunk.read_bytes())
@@ -264,10 +265,11 @@ def test_cache_ls_verify_and_gc(tmp_path, capsys):
     other = tmp_path / "other.yaml"
     other.write_text(STUDY.replace("seed: 3", "seed: 4"))
     assert main(["cache", "gc", str(other), "--scale", "small", "--cache", str(cache), "--dry-run"]) == 0
-    assert capsys.readouterr().out.count("would remove") == 2  # the wood and the summary
+    assert capsys.readouterr().out.count("would remove") == 3  # the wood, the summary and the pool
     assert len(list((cache / "micro").iterdir())) == 1
     assert main(["cache", "gc", str(other), "--scale", "small", "--cache", str(cache)]) == 0
     assert list((cache / "micro").iterdir()) == [] and list((cache / "summary").iterdir()) == []
+    assert list((cache / "pool").iterdir()) == []
     assert main(["cache", "verify", "--cache", str(tmp_path / "nowhere")]) == 2
 
 

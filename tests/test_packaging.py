@@ -93,7 +93,8 @@ def test_results_carry_their_provenance_and_open_with_plain_xarray_without_warni
     assert inputs["params"]["species"] == "birch" and inputs["thickness_mm"] == 0.03
     scenes = json.loads(ds.attrs["inputs"])["scenes"]
     assert len(scenes) == 1 and scenes[0]["rays"] == 20
-    assert ds.FWHM_R.attrs["ancillary_variables"] == "FWHM_R_ci_lower FWHM_R_ci_upper"
+    assert ds.FWHM_R.attrs["ancillary_variables"] == ("FWHM_R_ci_lower FWHM_R_ci_upper "
+                                                      "FWHM_R_ray_ci_lower FWHM_R_ray_ci_upper")
     assert ds.FWHM_R_ci_lower.attrs["confidence_level"] == 0.95
     assert ds.FWHM_R_ci_upper.attrs["bootstrap_resamples"] == 200 and ds.haze.attrs["threshold_deg"] == 2.5
 
