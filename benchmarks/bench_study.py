@@ -12,7 +12,8 @@ Writes the "study" section of results/bench.json:
   0.25, 0.5 and 1 mm: seconds, chunks generated, interfaces per ray;
 - table1_paper (only with --paper, which runs nothing else and keeps the
   other keys): every Table 1 study at paper scale in a fresh cache, as
-  `make table1` runs it: wall and CPU seconds of the whole command.
+  `make table1` runs it: wall and CPU seconds of the whole command;
+  ``--small`` likewise reruns table1_small alone.
 """
 
 from __future__ import annotations
@@ -121,13 +122,18 @@ def main() -> None:
     ap.add_argument("--out", default="results/bench.json")
     ap.add_argument("--rays", type=int, default=50, help="rays of the paper-scale slice")
     ap.add_argument("--paper", action="store_true",
-                    help="only time Table 1 at paper scale, cold (about 20-30 min on 2 cores)")
+                    help="only time Table 1 at paper scale, cold (about an hour on 2 cores)")
+    ap.add_argument("--small", action="store_true",
+                    help="only time Table 1 at small scale, cold and warm (a few minutes)")
     args = ap.parse_args()
-    if args.paper:
+    if args.paper or args.small:
         out = Path(args.out)
         section = json.loads(out.read_text()).get("study", {}) if out.exists() else {}
         with tempfile.TemporaryDirectory() as tmp:
-            section["table1_paper"] = table1_paper(Path(tmp))
+            if args.paper:
+                section["table1_paper"] = table1_paper(Path(tmp))
+            else:
+                section["table1_small"] = table1_small(Path(tmp))
         write_section(args.out, "study", section)
         return
     with tempfile.TemporaryDirectory() as tmp:
