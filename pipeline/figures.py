@@ -285,18 +285,16 @@ def plot_study(ds, path: Path) -> Path:
             v = ds[each].transpose(dim, "realisation").values * scale
             offsets = np.linspace(-0.2, 0.2, v.shape[1])
             ax.scatter((x[:, None] + offsets[None, :]).ravel(), v.ravel(), s=7, color="white",
-                       edgecolors="black", linewidths=0.5, zorder=3,
-                       label="each wood realisation" if var == "FWHM_R" else None)
-            if var == "FWHM_R":
-                ax.legend(fontsize=6, frameon=False, loc="upper left")
+                       edgecolors="black", linewidths=0.5, zorder=3)
         ax.set_xticks(x, labels, fontsize=7, rotation=30 if max(len(s) for s in labels) > 6 else 0)
         ax.set_ylabel(ylabel, fontsize=8)
         ax.tick_params(labelsize=7)
     fig.supxlabel(xlabel, fontsize=8)
     n_real = ds.sizes.get("realisation", 1)
     fig.suptitle(f"{ds.attrs['title']} — {ds.attrs['rays']} rays × {n_real} wood realisation"
-                 f"{'' if n_real == 1 else 's'}, method {_settings(ds)['method']}, pooled, 95 % intervals "
-                 f"{'with' if n_real > 1 else 'without'} the wood-to-wood variation", fontsize=9)
+                 f"{'' if n_real == 1 else 's'}, method {_settings(ds)['method']}\npooled, 95 % intervals "
+                 f"{'with' if n_real > 1 else 'without'} the wood-to-wood variation"
+                 f"{'; dots: each wood' if n_real > 1 else ''}", fontsize=9)
     fig.tight_layout()
     return _save(fig, path)
 
