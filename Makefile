@@ -8,13 +8,14 @@ SCALE ?= paper
 SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 EXPERIMENT := birch-0.7mm birch-0.7mm-air balsa-1mm balsa-1mm-air
+FIBRE_TIPS := with-ray-cells without-ray-cells
 # YES=1 runs what is estimated above TWRAY_CONFIRM_CPU_HOURS (Table 1 at paper scale: ~2.2 CPU-h).
 YES ?=
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $(YES),--yes)
 # Each scale has its own results folder: results/paper/ (committed) and results/small/.
 RESULTS = results/$(SCALE)
 
-.PHONY: install wheel-check demo test figures report experiment table1-paper-method convergence bench bench-generate bench-trace bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
+.PHONY: install wheel-check demo test figures report experiment fibre-tips table1-paper-method convergence bench bench-generate bench-trace bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
 
 install: $(STAMP)
 
@@ -35,6 +36,10 @@ table1: install
 ## The paper's two measured samples (birch 0.7 mm, balsa 1 mm), angles inside and in air -> results/<scale>/experiment/.
 experiment: install
 	$(BIN)/twray study $(addprefix studies/experiment/,$(addsuffix .yaml,$(EXPERIMENT))) $(STUDY_ARGS) --results $(RESULTS)/experiment --report $(RESULTS)/experiment/haze.md
+
+## Overlapping tapered fibre tips (fibre_tip_um 0-300 µm) with and without ray cells -> results/<scale>/fibre-tips/.
+fibre-tips: install
+	$(BIN)/twray study $(addprefix studies/fibre-tips/,$(addsuffix .yaml,$(FIBRE_TIPS))) $(STUDY_ARGS) --results $(RESULTS)/fibre-tips --report $(RESULTS)/fibre-tips/fibre-tips.md
 
 ## Table 1 with the paper's method (500 rays per wood) beside `accurate` -> results/<scale>/paper-method/ (~3.5 CPU-h at paper scale).
 table1-paper-method: install

@@ -44,6 +44,10 @@ class WoodParams:
     fibre_length_um: float = 1170.5  # mean fibre length along L [µm]
     fibre_length_sd_um: float = 290.5
     end_plates: bool = True
+    # Overlapping tapered fibre tips: consecutive fibres of a file meet along an oblique wall
+    # that crosses the lumen over 2·fibre_tip_um along L, instead of a flat end plate.
+    # 0: flat end plates (GENERATOR.md §2).
+    fibre_tip_um: float = 0.0
     vessels: bool = True
     vessel_cluster_probability: float = 0.9  # proposal probability per vessel tile
     vessel_pair_fraction: float = 0.3
@@ -87,6 +91,22 @@ class WoodParams:
         if out["laminate"] is not None:
             out["laminate"] = list(out["laminate"])
         return out
+
+    def key_dict(self) -> dict[str, Any]:
+        """:meth:`to_dict` without the fields added later that sit at their neutral value.
+
+        What cache keys hash: a wood that does not use a newer feature keeps the
+        key (and the cached chunks) it had before the feature existed.
+        """
+        out = self.to_dict()
+        for name, neutral in NEUTRAL_ADDED.items():
+            if out[name] == neutral:
+                del out[name]
+        return out
+
+
+# Fields added after cache keys were first written, with the value that reproduces the old wood.
+NEUTRAL_ADDED = {"fibre_tip_um": 0.0}
 
 
 WOOD_FIELDS = {f.name: f for f in dataclasses.fields(WoodParams)}
@@ -178,6 +198,12 @@ def validate(p: WoodParams) -> WoodParams:
     _check(p.control_spacing_um > 0, "control_spacing_um", p.control_spacing_um, "> 0 µm")
     _check(p.fibre_length_um > 0, "fibre_length_um", p.fibre_length_um, "> 0 µm")
     _check(p.fibre_length_sd_um >= 0, "fibre_length_sd_um", p.fibre_length_sd_um, ">= 0 µm")
+    _check(0 <= p.fibre_tip_um <= p.fibre_length_um / 2, "fibre_tip_um", p.fibre_tip_um,
+           f"in [0, fibre_length_um/2 = {p.fibre_length_um / 2:g}] µm so that a fibre's two tips fit in it")
+    if p.fibre_tip_um > 0:
+        _check(p.end_plates, "fibre_tip_um", p.fibre_tip_um, "0 when end_plates is false (tips are fibre ends)")
+        _check(p.cell_shape == "ellipse", "fibre_tip_um", p.fibre_tip_um,
+               f"0 for cell_shape {p.cell_shape} (tips are modelled for elliptical lumens)")
     for name in ("vessel_cluster_probability", "vessel_pair_fraction", "vessel_triple_fraction",
                  "large_distortion_probability"):
         v = getattr(p, name)

@@ -82,6 +82,10 @@ BAD = [
     (["--origin-um", "a,b,c"], "origin_um", "numbers"),
     (["--set", "fibre_diameter_um"], "--set", "key=value"),
     (["--set", "node_jitter=0.3"], "node_jitter", "in [0, 0.2]"),
+    (["--set", "fibre_tip_um=-1"], "fibre_tip_um", "in [0, fibre_length_um/2"),
+    (["--set", "fibre_tip_um=700"], "fibre_tip_um", "two tips fit"),
+    (["--set", "fibre_tip_um=100", "--set", "end_plates=false"], "fibre_tip_um", "end_plates is false"),
+    (["--preset", "balsa", "--set", "fibre_tip_um=100"], "fibre_tip_um", "cell_shape polygon"),
     (["--voxel-um", "nan"], "voxel_um", "finite"),
     (["--voxel-um", "1e-6"], "size_um", "at most 1e13 voxels"),
     (["--size-um", "10000000,150,100"], "generate", "add --yes (with make: YES=1) to run it"),  # a 10 m sample: 22 CPU-h

@@ -272,8 +272,9 @@ def test_same_seed_same_voxels_other_seed_other_voxels():
     assert (a != c).mean() > 0.2
 
 
-def test_a_block_is_the_same_voxels_as_the_corresponding_part_of_a_larger_one():
-    p = build_params("birch")
+@pytest.mark.parametrize("overrides", [{}, {"fibre_tip_um": 60.0}], ids=["flat ends", "fibre tips"])
+def test_a_block_is_the_same_voxels_as_the_corresponding_part_of_a_larger_one(overrides):
+    p = build_params("birch", overrides=overrides)
     g = make_grid((100, 100, 100), V, (0, 0, 0), p)
     whole = generate_block(p, g, (0, 0, 0), g.shape, seed=14)
     part = generate_block(p, g, (37, 101, 55), (50, 60, 70), seed=14)
@@ -324,6 +325,8 @@ PINNED = [
      "a34e53a590947b10d37ab0a25289f2bff77d278b95c194fdc23d1a58223ff13f"),
     ("balsa", {}, (0, 0, 0), (48, 48, 48), "polygon cells",
      "071386c8f93bd6e373c5c6cdc6fe786a83e8d6952167bd808c85d09986d192e2"),
+    ("birch", {"fibre_tip_um": 150.0}, (0, 0, 0), (64, 64, 64), "overlapping fibre tips",
+     "ec97ef734a02ce2d604e6bbbd4a58ec8c27919a423d0caf50c3e151421a67c79"),
     ("birch", {"laminate": [0, -45, 90, 45, 0]}, (0, 0, 0), (48, 48, 48), "rotated plies",
      "7654afa564a6dbc9740f017a22874067d71f25cc670f510d67614cb03be2606e"),
 ]
@@ -355,3 +358,89 @@ def test_the_same_wood_at_half_the_voxel_agrees_at_every_shared_voxel_centre():
     fine = generate_block(p, Grid((0, 0, 0), 0.25, (0.125, 0.125, 0.125)), (-40, 6, 80), (96, 80, 64), seed=4)
     assert 0.2 < coarse.mean() < 0.6
     assert np.array_equal(coarse, fine[::2, ::2, ::2])
+
+
+def wall_runs_inside_lumens_um(vol, voxel_um, open_min_um=5.0):
+    """Lengths of the wall runs along L that close a lumen: between two polymer runs of
+    at least ``open_min_um`` (end plates, or the oblique walls between fibre tips)."""
+    out = []
+    for col in vol.reshape(-1, vol.shape[2]):
+        edges = np.flatnonzero(np.diff(col.astype(np.int8))) + 1
+        runs = np.diff(np.concatenate([[0], edges, [col.size]]))
+        vals = col[np.concatenate([[0], edges])]
+        for q in range(1, len(runs) - 1):
+            if vals[q] == 1 and min(runs[q - 1], runs[q + 1]) * voxel_um >= open_min_um:
+                out.append(runs[q] * voxel_um)
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def tip_woods():
+    """The plain fibre lattice (no vessels, rays or distortion) with flat end plates and with
+    overlapping fibre tips of 75 and 150 µm; 100 x 100 x 900 µm at 1 µm."""
+    common = dict(seed=8, voxel_um=1.0, vessels=False, ray_cells=False, distortion=0.0,
+                  global_bend_um=0.0, node_jitter=0.0, wall_variation=0.0)
+    return {tip: block((100, 100, 900), fibre_tip_um=float(tip), **common) for tip in (0, 75, 150)}
+
+
+def test_fibre_tips_are_oblique_walls_inclined_by_their_length(tip_woods):
+    """Between overlapping tips the lumen is crossed by a wall 2t thick whose trace moves across
+    the lumen (half-width w) at w/λ per µm of L; a line along L inside the lumen therefore meets
+    wall over 2t·λ/w µm: a slope of w/λ (2.4° at λ = 150 µm), against 2 µm flat plates."""
+    t, c = 1.0, 7.25
+    a_r, a_t = c - t, c + 1.0 - t  # lumen semi-axes without jitter (elongation 1 µm along T)
+    phi = np.linspace(0, 2 * np.pi, 721)
+    w = np.mean(np.sqrt((a_r * np.cos(phi)) ** 2 + (a_t * np.sin(phi)) ** 2))  # mean half-width
+    flat = wall_runs_inside_lumens_um(tip_woods[0], 1.0)
+    assert flat.size > 200 and np.median(flat) <= 3.0  # the 2 µm end plates
+    medians = {}
+    for lam in (75, 150):
+        runs = wall_runs_inside_lumens_um(tip_woods[lam], 1.0)
+        assert runs.size > 200
+        medians[lam] = float(np.median(runs))
+        expected = 2 * t * lam / w
+        assert 0.85 * expected < medians[lam] < 1.15 * expected, (lam, medians[lam], expected)
+        assert np.mean(runs <= 3.0) < 0.05  # no flat plate is left
+    assert 1.7 < medians[150] / medians[75] < 2.3
+
+
+def test_fibre_tips_add_the_wall_of_their_oblique_plates(tip_woods):
+    """Each fibre boundary (one per ~1170 µm of a fibre) trades a 2 µm flat plate across the
+    lumen for an oblique wall of volume 2t·λ·A/w (A the lumen area): the wall fraction grows
+    by the lumen fraction times (2tλ/w − 2 µm)/1170 µm."""
+    t, c, ell = 1.0, 7.25, 1170.5
+    a_r, a_t = c - t, c + 1.0 - t
+    phi = np.linspace(0, 2 * np.pi, 721)
+    w = np.mean(np.sqrt((a_r * np.cos(phi)) ** 2 + (a_t * np.sin(phi)) ** 2))
+    lumen = 1.0 - tip_woods[0].mean()
+    for lam in (75, 150):
+        grown = tip_woods[lam].mean() - tip_woods[0].mean()
+        expected = lumen * (2 * t * lam / w - 2.0) / ell
+        assert 0.85 * expected < grown < 1.15 * expected, (lam, grown, expected)
+
+
+def test_fibre_tips_leave_everything_but_the_fibre_ends():
+    """Tips change the walls near fibre boundaries only: vessels, rays and lumen outlines stay."""
+    flat = block((100, 100, 200), seed=5, voxel_um=1.0)
+    tips = block((100, 100, 200), seed=5, voxel_um=1.0, fibre_tip_um=150.0)
+    differ = flat != tips
+    assert 0.002 < differ.mean() < 0.05
+    # Oblique walls fill lumen (polymer -> wall); the flat plates they replace open (wall -> polymer).
+    assert (tips[differ] == 1).mean() > 0.7
+
+
+KEY_TABLE1_DEFAULT_WOOD = "b10f58756b3b44b14247aeb4"  # birch, seed 1, traced on 0.25 µm voxels
+
+
+def test_a_wood_without_fibre_tips_keeps_its_cache_key():
+    """fibre_tip_um is left out of cache keys at 0, so the woods traced before it existed
+    (every committed study) keep their keys and cached chunks."""
+    from pipeline.study.run import wood_record
+
+    birch = build_params("birch")
+    assert "fibre_tip_um" not in wood_record(birch, 1, 0.25)["wood"]
+    tipped = build_params("birch", overrides={"fibre_tip_um": 150.0})
+    assert wood_record(tipped, 1, 0.25)["wood"]["fibre_tip_um"] == 150.0
+    # The key of Table 1's default wood, realisation 0, as the committed studies were traced.
+    from pipeline.cache import cache_key
+    assert cache_key(wood_record(birch, 1, 0.25)) == KEY_TABLE1_DEFAULT_WOOD

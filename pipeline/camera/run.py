@@ -50,7 +50,7 @@ def image_record(cfg: ImageConfig) -> dict:
     sheet = None
     if cfg.sheet is not None:
         sheet = dataclasses.asdict(cfg.sheet)
-        sheet["wood"] = cfg.sheet.wood.to_dict()
+        sheet["wood"] = cfg.sheet.wood.key_dict()
         sheet["micro"] = wood_record(cfg.sheet.wood, cfg.sheet.seed,
                                      traced_voxel_um(cfg.sheet.voxel_um, cfg.settings))
     return {"stage": "camera", "version": VERSION, "tracer": TRACER_VERSION,

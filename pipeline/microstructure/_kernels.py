@@ -23,8 +23,8 @@ from ._rng import normal, uniform
 PITCH, SCALE, T0, WALLVAR, JITTER, PUSH, CTRL, FLEN, FLEN_SD, PLATE, ENDS, SHAPE = range(12)
 VESSELS, VPROB, VPAIR, VTRIPLE, VWALL = range(12, 17)
 RAYS, RSPACE, RJIT, RSER, RWIDTH, RHEIGHT, RLEN, RLEN_SD, RGROUP, RGROUP_SD, RSQUEEZE, RRAMP = range(17, 29)
-DIST, LARGE_P, BEND_A, BEND_WL = range(29, 33)
-N_CONSTANTS = 33
+DIST, LARGE_P, BEND_A, BEND_WL, TIP = range(29, 34)
+N_CONSTANTS = 34
 
 WALL = np.uint8(1)
 POLYMER = np.uint8(0)
@@ -552,9 +552,39 @@ def pull_back(patch, gi0, gj0, G, R, T):
 
 # --------------------------------------------------------------------------
 # One slice (fixed L in ply coordinates): tables, then the per-point phase
+@njit(cache=True, nogil=True, error_model="numpy")
+def tip_walls(seed, n, m, L, lo, hi, tip, phase, mean, aR, aT, out):
+    """The oblique walls where fibre (n, m) meets the fibres before and after it, at L.
+
+    Consecutive fibres of a file overlap over 2·tip along L around their
+    boundary b: their tapered tips slide past each other, separated by a wall
+    whose trace in the slice is the line (p − c)·u = s with u a unit direction
+    in the R-T plane drawn per boundary, and s = w·(b − L)/tip moving across
+    the lumen (w its half-width along u) from one side at b − tip to the other
+    at b + tip.  The wall plane is inclined to L by atan(w/tip).
+    The cell [lo, hi) holds L; since a cell is at least ``tip`` long, only its
+    own two boundaries can be that close.  out = (count, (uR, uT, s) per wall).
+    """
+    count = 0
+    for side in range(2):
+        b = lo if side == 0 else hi
+        if abs(L - b) >= tip:
+            continue
+        q = np.int64(round((b - phase) / mean))  # the boundary's index in the chain
+        phi = 2.0 * math.pi * uniform(seed, _rng.FIBRE_TIP, n, m, q)
+        uR = math.cos(phi)
+        uT = math.sin(phi)
+        w = math.sqrt(aR * aR * uR * uR + aT * aT * uT * uT)
+        out[1 + 3 * count] = uR
+        out[2 + 3 * count] = uT
+        out[3 + 3 * count] = w * (b - L) / tip
+        count += 1
+    out[0] = count
+
+
 # --------------------------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
-def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB, VIDX, rays, stats,
+def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG, VB, VIDX, rays, stats,
                 CV, CF, cn, ck, ENDS_):
     """Fill the node, fibre, vessel and ray tables of one slice at L.
 
@@ -562,6 +592,9 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB,
     FE : per centre (cR, cT, 1/aR², 1/aT², bias) of the inset lumen ellipse; the
         bias is 0 for an open lumen and huge for a closed one.
     FF : per centre flag, 0 open lumen, 1 closed (end plate or no lumen), 2 vessel member.
+    FJ : per centre the oblique tip walls crossing its lumen at L (``M[TIP]`` > 0):
+        (count, then (uR, uT, s) per wall); a lumen point p is wall where
+        |(p − centre)·u − s| < its inset t (see :func:`tip_walls`).
     VG : per vessel member (cR, cT, aR, aT) of its outline.
     VB : per vessel member and cluster neighbour (the one before, the one after):
         (1 if there is one else 0, eR, eT, |e|, mR, mT), e from this member's
@@ -581,6 +614,10 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB,
     push = M[PUSH] * M[SCALE]
     polygon = M[SHAPE] == 1.0
     plate = 0.5 * M[PLATE]
+    tip = M[TIP]
+    min_len = min(50.0, 0.5 * M[FLEN])
+    if tip > 0.0:
+        min_len = max(min_len, min(tip, 0.5 * M[FLEN]))  # a cell holds its two tips only
     for i in range(1, nn - 1):
         for j in range(1, nm - 1):
             n = n_lo + i
@@ -588,6 +625,10 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB,
             if not is_centre(n, m):
                 continue
             flag = 0
+            lo = np.nan
+            hi = np.nan
+            aR = 0.0
+            aT = 0.0
             if _member_of(vessels, nv, n, m):
                 flag = 2
             elif M[ENDS] != 0.0:
@@ -597,11 +638,11 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB,
                 if not (lo <= L < hi):  # also when not looked up yet (NaN)
                     ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
                     lo, hi = chain_interval(L, seed, _rng.FIBRE_END, n, m, ph, M[FLEN], M[FLEN_SD],
-                                            min(50.0, 0.5 * M[FLEN]))
+                                            min_len)
                     ENDS_[a, j, 0] = lo
                     ENDS_[a, j, 1] = hi
                     stats[ST_LATTICE] += 1
-                if L - lo < plate or hi - L < plate:
+                if tip == 0.0 and (L - lo < plate or hi - L < plate):
                     flag = 1
             if polygon:
                 FE[i, j, 0] = NR[i, j]
@@ -620,6 +661,10 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB,
                 FE[i, j, 3] = 1.0 / (aT * aT)
             FE[i, j, 4] = 0.0 if flag == 0 else 1e300
             FF[i, j] = flag
+            FJ[i, j, 0] = 0.0
+            if tip > 0.0 and flag == 0 and not polygon and not math.isnan(lo):
+                ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
+                tip_walls(seed, n, m, L, lo, hi, tip, ph, M[FLEN], aR, aT, FJ[i, j])
     for v in range(nv):
         n = vessels[v, 0]
         m = vessels[v, 1]
@@ -739,7 +784,7 @@ def _squeeze_and_classify(pT, c, W2, lam, rays, nr):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def candidate_table(FE, n_lo, m_lo, C4):
+def candidate_table(FE, n_lo, m_lo, C4, FJ, CIJ):
     """The lumen ellipses that can hold a point, per lattice cell (for the fibre phase).
 
     A point in lattice cell (n, w) = (floor(R/c), floor(T/c)): lumens of row
@@ -749,6 +794,8 @@ def candidate_table(FE, n_lo, m_lo, C4):
     fields-major (centre R ×4, centre T ×4, 1/aR² ×4, 1/aT² ×4, bias ×4), for
     :func:`~pipeline._intrinsics.any_inside4`; a candidate outside FE's window
     (never met by a point of the slice) gets a closed lumen's bias.
+    CIJ[a, b, t] : with fibre tips (FJ has rows), the FE index (i, j) of
+    candidate t if its lumen is crossed by a tip wall, else -1 (shape 0: no tips).
     """
     nn, nm = FE.shape[0], FE.shape[1]
     jb0 = m_lo >> 1
@@ -766,6 +813,10 @@ def candidate_table(FE, n_lo, m_lo, C4):
                         C4[a, b, f, t] = FE[ii, mi, f] if inside else 0.0
                     if not inside:
                         C4[a, b, 4, t] = 1e300
+                    if CIJ.shape[0] > 0:
+                        crossed = inside and FJ[ii, mi, 0] > 0.0
+                        CIJ[a, b, t, 0] = ii if crossed else -1
+                        CIJ[a, b, t, 1] = mi
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
@@ -813,9 +864,30 @@ def _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt, cand_i, cand_j):
     return POLYMER
 
 
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def _in_tip_wall(pR, pT, a, b, FE, Nt, FJ, CIJ):
+    """Whether a lumen point lies in an oblique tip wall of the candidate lumen holding it."""
+    for t in range(4):
+        ii = CIJ[a, b, t, 0]
+        if ii < 0:
+            continue
+        mi = np.uint64(CIJ[a, b, t, 1])
+        iu = np.uint64(ii)
+        dR = pR - FE[iu, mi, 0]
+        dT = pT - FE[iu, mi, 1]
+        if dR * dR * FE[iu, mi, 2] + dT * dT * FE[iu, mi, 3] + FE[iu, mi, 4] >= 1.0:
+            continue
+        for w in range(np.int64(FJ[iu, mi, 0])):
+            d = dR * FJ[iu, mi, 1 + 3 * w] + dT * FJ[iu, mi, 2 + 3 * w] - FJ[iu, mi, 3 + 3 * w]
+            if abs(d) < Nt[iu, mi]:
+                return True
+    return False
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0, gj0, G,
-                 seed, M, n_lo, m_lo, FE, FF, Nt, vessels, VG, VB, VIDX, rays, nr, RC, C4, SQ, SR, reuse):
+                 seed, M, n_lo, m_lo, FE, FF, Nt, vessels, VG, VB, VIDX, rays, nr, RC, C4, SQ, SR, reuse,
+                 FJ, CIJ):
     """Phases of the voxels of one slice bucket.
 
     Per point: a ray band (:func:`ray_cell_phase`), else the vessel cluster
@@ -837,6 +909,7 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
     polygon = M[SHAPE] == 1.0
     vwall = M[VWALL]
     has_vessels = vessels.shape[0] > 0
+    tips = CIJ.shape[0] > 0
     memo = np.full((8, 4), np.nan)
     cand_i = np.empty(9, np.int64)
     cand_j = np.empty(9, np.int64)
@@ -877,7 +950,10 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
             else:
                 cell = (np.uint64(n_fl - n_lo), np.uint64((w_fl >> 1) - (m_lo >> 1)),
                         np.uint64(0), np.uint64(0))
-                out[i, j, k] = POLYMER if any_inside4(C4, cell, pR, sT) else WALL
+                inside = any_inside4(C4, cell, pR, sT)
+                if inside and tips:
+                    inside = not _in_tip_wall(pR, sT, cell[0], cell[1], FE, Nt, FJ, CIJ)
+                out[i, j, k] = POLYMER if inside else WALL
 
 
 # --------------------------------------------------------------------------
@@ -899,6 +975,7 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
     G = c / GRID_PER_PITCH
     rotated = sn != 0.0
     polygon = M[SHAPE] == 1.0
+    tips = M[TIP] > 0.0 and M[ENDS] != 0.0 and not polygon
     q = 0.5 * voxel
     # Ply coordinates of each (R, L) pair, and its slice key.
     Rp = np.empty((nR, nL))
@@ -977,9 +1054,10 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
         FE = np.zeros((nn, nm, 5))
         FE[:, :, 4] = 1e300
         FF = np.ones((nn, nm), np.uint8)
+        FJ = np.zeros((nn, nm, 7))
         VIDX = np.empty((nn, nm), np.int64)
-        nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, vessels, nv, VG, VB, VIDX, rays,
-                         stats, CV, CF, cn, ck, ENDS_)
+        nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG, VB, VIDX,
+                         rays, stats, CV, CF, cn, ck, ENDS_)
         ray_slice_tables(seed, M, L, rays, nr, RC)
         reuse = not rotated and nr == n_last
         for r in range(nr):
@@ -987,11 +1065,13 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
                 reuse = reuse and rays[r, f] == last[r, f]
                 last[r, f] = rays[r, f]
         n_last = nr
-        C4 = np.empty((nn, ((m_lo + nm - 1) >> 1) - (m_lo >> 1) + 1, 5, 4))
+        nb = ((m_lo + nm - 1) >> 1) - (m_lo >> 1) + 1
+        C4 = np.empty((nn, nb, 5, 4))
+        CIJ = np.empty((nn if tips else 0, nb, 4, 2), np.int64)
         if not polygon:
-            candidate_table(FE, n_lo, m_lo, C4)
+            candidate_table(FE, n_lo, m_lo, C4, FJ, CIJ)
         _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0,
                      gj0, G, seed, M, n_lo, m_lo, FE, FF, Nt, vessels[:nv], VG, VB, VIDX, rays, nr, RC,
-                     C4, SQ, SR, reuse)
+                     C4, SQ, SR, reuse, FJ, CIJ)
         stats[ST_VOXELS] += (stop - start) * (j_hi - j_lo)
         start = stop

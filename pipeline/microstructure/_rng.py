@@ -36,6 +36,7 @@ RAY_CELL_END = 13
 RAY_CELL_PHASE = 14
 GLOBAL_BEND = 15
 PLY = 16
+FIBRE_TIP = 17
 
 
 @njit(inline="always", cache=True, error_model="numpy")

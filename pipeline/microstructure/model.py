@@ -35,6 +35,7 @@ def model_constants(p: WoodParams) -> np.ndarray:
     M[K.FLEN_SD] = p.fibre_length_sd_um
     M[K.PLATE] = p.wall_thickness_um
     M[K.ENDS] = float(p.end_plates)
+    M[K.TIP] = p.fibre_tip_um
     M[K.SHAPE] = 1.0 if p.cell_shape == "polygon" else 0.0
     M[K.VESSELS] = float(p.vessels)
     M[K.VPROB] = p.vessel_cluster_probability

@@ -140,7 +140,7 @@ class Plan:
 
 def wood_record(wood, seed: int, voxel_um: float) -> dict:
     """What a wood field's chunks depend on: its cache key (shared by studies and the camera)."""
-    return {"stage": "micro", "version": VERSIONS["micro"], "wood": wood.to_dict(),
+    return {"stage": "micro", "version": VERSIONS["micro"], "wood": wood.key_dict(),
             "seed": seed, "voxel_um": voxel_um, "chunks": list(CHUNKS)}
 
 
