@@ -144,7 +144,7 @@ def main() -> None:
                   "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
     out = Path(args.out)
     earlier = json.loads(out.read_text()).get("study", {}) if out.exists() else {}
-    for key in ("table1_paper", "table1_paper_method", "experiment_paper"):  # measured by other runs
+    for key in ("table1_paper", "table1_paper_method", "experiment_paper", "fibre_tips_paper"):  # measured by other runs
         if key in earlier:
             result[key] = earlier[key]
     write_section(args.out, "study", result)

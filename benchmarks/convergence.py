@@ -30,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.report import TABLE1, _reduce  # noqa: E402
+from pipeline.report import TABLE1, reduce_rays  # noqa: E402
 from pipeline.study.run import compute, load_rays, plan_study  # noqa: E402
 from pipeline.study.spec import load_study, with_rays  # noqa: E402
 
@@ -58,7 +58,7 @@ def paired_change(base, other, n_common: int, rng) -> tuple[np.ndarray, np.ndarr
     """Change of (FWHM_R, FWHM_L) in % and haze in points of ``other`` against ``base``, with
     95 % paired bootstrap intervals (rays ``[0, n_common)`` drawn alike for both, the rest
     of the larger beam drawn on its own)."""
-    point = [_reduce(*b[:2], b[2], np.arange(b[2].size)) for b in (base, other)]
+    point = [reduce_rays(*b[:2], b[2], np.arange(b[2].size)) for b in (base, other)]
 
     def delta(a, b):
         return np.array([100 * (b[0] / a[0] - 1), 100 * (b[1] / a[1] - 1), 100 * (b[2] - a[2])])
@@ -68,8 +68,8 @@ def paired_change(base, other, n_common: int, rng) -> tuple[np.ndarray, np.ndarr
         common = rng.integers(0, n_common, n_common)
         extra = other[2].size - n_common
         idx_o = np.concatenate([common, n_common + rng.integers(0, extra, extra)]) if extra else common
-        a = _reduce(*base[:2], base[2], common if base[2].size == n_common else idx_o)
-        b = _reduce(*other[:2], other[2], idx_o)
+        a = reduce_rays(*base[:2], base[2], common if base[2].size == n_common else idx_o)
+        b = reduce_rays(*other[:2], other[2], idx_o)
         boots.append(delta(a, b))
     boots = np.array(boots)
     return delta(*point), np.quantile(boots, [0.025, 0.975], axis=0)
@@ -105,7 +105,7 @@ def main(argv=None) -> int:
             rows.append(f"{name} {st.dimension}={st.coordinate()[i]}")
             got = {v: angles(plans[name, v], i) for v in VARIANTS}
             for v in VARIANTS:
-                values[v].append(_reduce(*got[v][:2], got[v][2], np.arange(got[v][2].size)))
+                values[v].append(reduce_rays(*got[v][:2], got[v][2], np.arange(got[v][2].size)))
             for v in VARIANTS[1:]:
                 d, ci = paired_change(got["baseline"], got[v], got["baseline"][2].size, rng)
                 change[v].append(d)

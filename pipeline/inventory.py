@@ -129,17 +129,21 @@ def _verify_wood(entry: Entry) -> list[tuple[Path, str]]:
         chunks = tuple(zarr.open_array(entry.path / ARRAY, mode="r").chunks)
     except Exception as exc:  # noqa: BLE001 - any failure to open is the finding
         return [(entry.path, f"its array does not open: {type(exc).__name__}")]
-    record = {"stage": "micro", "version": VERSIONS["micro"], "wood": meta.get("params"),
+    p = dict(meta.get("params") or {})
+    if p.get("laminate") is not None:
+        p["laminate"] = tuple(p["laminate"])
+    try:
+        params = validate(WoodParams(**p))
+    except (TypeError, ValueError):
+        return [(entry.path, "not the wood its key names (or made by an older twray)")]
+    # Keys hash WoodParams.key_dict: a store written before a field existed keeps its key.
+    record = {"stage": "micro", "version": VERSIONS["micro"], "wood": params.key_dict(),
               "seed": meta.get("seed"), "voxel_um": meta.get("voxel_um"), "chunks": list(chunks)}
     if cache_key(record) != entry.key:
         return [(entry.path, "not the wood its key names (or made by an older twray)")]
     if not _declares_digests(entry.path):
         return [(entry.path, "its chunks carry no digests")]
-    p = dict(meta["params"])
-    if p.get("laminate") is not None:
-        p["laminate"] = tuple(p["laminate"])
-    store = WoodChunkStore(entry.path, validate(WoodParams(**p)), seed=meta["seed"], voxel_um=meta["voxel_um"],
-                           chunks=chunks)
+    store = WoodChunkStore(entry.path, params, seed=meta["seed"], voxel_um=meta["voxel_um"], chunks=chunks)
     problems = []
     root = entry.path / ARRAY / "c"
     for f in sorted(root.rglob("*")) if root.is_dir() else []:

@@ -77,7 +77,7 @@ def _haze_of(theta_r: np.ndarray, theta_l: np.ndarray) -> float:
     return float(np.mean(dev > HAZE_ANGLE_DEG))
 
 
-def _reduce(theta_r, theta_l, ok, idx) -> np.ndarray:
+def reduce_rays(theta_r, theta_l, ok, idx) -> np.ndarray:
     """FWHM_R, FWHM_L and haze of rays ``idx`` (those of them transmitted, ``ok``) of one value.
 
     The arrays are (realisation, ray) and ``idx`` a list of (realisation, ray indices) pairs,
@@ -127,7 +127,7 @@ def effects(name: str, ds, *, n_boot: int = N_BOOT, seed: int = 0) -> list[Effec
     n_values, n_real, n_rays = tr.shape
     ok = st == TRANSMITTED
     everything = [(r, np.arange(n_rays)) for r in range(n_real)]
-    point = np.array([_reduce(tr[k], tl[k], ok[k], everything) for k in range(n_values)])
+    point = np.array([reduce_rays(tr[k], tl[k], ok[k], everything) for k in range(n_values)])
     # The stored numbers are this reduction of these rays.
     stored = np.stack([ds["FWHM_R"].values, ds["FWHM_L"].values, ds["haze"].values], axis=1)
     if not np.allclose(point, stored, rtol=1e-6, atol=1e-9):
@@ -137,7 +137,7 @@ def effects(name: str, ds, *, n_boot: int = N_BOOT, seed: int = 0) -> list[Effec
     for b in range(n_boot):
         picks = rng.integers(0, n_real, n_real) if n_real > 1 else np.zeros(1, np.int64)
         idx = [(r, rng.integers(0, n_rays, n_rays)) for r in picks]
-        boots[b] = [_reduce(tr[k], tl[k], ok[k], idx) for k in range(n_values)]
+        boots[b] = [reduce_rays(tr[k], tl[k], ok[k], idx) for k in range(n_values)]
     ref = reference_index(ds)
     a = (1.0 - LEVEL) / 2.0
     out = []
@@ -263,12 +263,12 @@ def method_rows(tables: dict, paper: dict, *, n_boot: int = N_BOOT, seed: int = 
         for k in range(acc.sizes[dim]):
             cut = [[x[k, :n_real, :n] for x in arr] for arr in arrays]
             every = [(r, np.arange(n)) for r in range(n_real)]
-            point = [_reduce(c[0], c[1], c[2] == TRANSMITTED, every) for c in cut]
+            point = [reduce_rays(c[0], c[1], c[2] == TRANSMITTED, every) for c in cut]
             boots = []
             for _ in range(n_boot):
                 picks = rng.integers(0, n_real, n_real) if n_real > 1 else np.zeros(1, np.int64)
                 idx = [(r, rng.integers(0, n, n)) for r in picks]
-                pa, pp = (_reduce(c[0], c[1], c[2] == TRANSMITTED, idx) for c in cut)
+                pa, pp = (reduce_rays(c[0], c[1], c[2] == TRANSMITTED, idx) for c in cut)
                 boots.append([100 * (pp[0] / pa[0] - 1), 100 * (pp[1] / pa[1] - 1), 100 * (pp[2] - pa[2])])
             boots = np.array(boots)
             diff = [100 * (point[1][0] / point[0][0] - 1), 100 * (point[1][1] / point[0][1] - 1),
@@ -341,6 +341,82 @@ def experiment_markdown(rows: list[dict]) -> list[str]:
             f"{', '.join(f'{v:.0f}' for v in r['haze_air_each'])} | "
             f"{r['FWHM_R_inside']:.2f} → {r['FWHM_R_air']:.2f} |")
     return lines
+
+
+FIBRE_TIPS = ("with-ray-cells", "without-ray-cells")
+
+
+def tip_wall_angle_deg(wood: dict) -> float:
+    """Inclination to L of the oblique wall between overlapping fibre tips: atan(w/λ), w the
+    lumen's half-width averaged over directions (docs/methods.md, "Fibre tips"); 0 for flat ends."""
+    lam = wood.get("fibre_tip_um", 0.0)
+    if not lam:
+        return 0.0
+    c = wood["fibre_diameter_um"] / 2.0
+    t = wood["wall_thickness_um"] / 2.0
+    push = wood["lumen_elongation_um"] * c / 7.25
+    phi = np.linspace(0.0, 2.0 * np.pi, 721)
+    w = np.mean(np.hypot((c - t) * np.cos(phi), (c + push - t) * np.sin(phi)))
+    return math.degrees(math.atan(w / lam))
+
+
+def fibre_tip_rows(base: Path, *, n_boot: int = N_BOOT) -> list[dict]:
+    """The fibre-tip studies (with and without ray cells): each tip length pooled, and its change
+    against flat fibre ends (the study's first value) as a paired hierarchical bootstrap."""
+    rows = []
+    for name in FIBRE_TIPS:
+        ds = open_dataset(base / "fibre-tips" / f"{name}.zarr")
+        dim = _dim(ds)
+        changes = {(e.value, e.quantity): e for e in effects(name, ds, n_boot=n_boot)}
+        scenes = json.loads(ds.attrs["scenes"])
+        for k in range(ds.sizes[dim]):
+            one, value = ds.isel({dim: k}), value_label(ds[dim].values[k])
+            rows.append({
+                "study": name, "ray_cells": bool(scenes[k]["wood"]["ray_cells"]),
+                "tip_um": float(ds[dim].values[k]), "angle_deg": tip_wall_angle_deg(scenes[k]["wood"]),
+                "realisations": ds.sizes.get("realisation", 1), "rays": ds.sizes["ray"],
+                "interfaces_per_ray": float(one["interfaces_per_ray"]),
+                **{q: (100 if q == "haze" else 1) * float(one[q]) for q in ("FWHM_R", "FWHM_L", "haze")},
+                **{f"{q}_ci": tuple((100 if q == "haze" else 1) * float(one[f"{q}_ci_{b}"])
+                                    for b in ("lower", "upper")) for q in ("FWHM_R", "FWHM_L", "haze")},
+                "change": {q: changes.get((value, q)) for q in ("FWHM_R", "FWHM_L", "haze")},
+            })
+    return rows
+
+
+def fibre_tip_markdown(rows: list[dict]) -> list[str]:
+    lines = ["| ray cells | fibre tips λ (µm) | tip wall to L | FWHM_R (°) [95 % CI] | FWHM_L (°) [95 % CI] "
+             "| haze (%) [95 % CI] | FWHM_R against flat ends | FWHM_L against flat ends | haze against flat ends |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        ch = r["change"]
+        cells = [_effect_cell(ch[q]) if ch[q] is not None else "reference" for q in ("FWHM_R", "FWHM_L", "haze")]
+        lines.append(
+            f"| {'yes' if r['ray_cells'] else 'no'} | {r['tip_um']:g}{' (flat ends)' if not r['tip_um'] else ''} | "
+            f"{r['angle_deg']:.1f}° | {_with_ci(r['FWHM_R'], r['FWHM_R_ci'])} | {_with_ci(r['FWHM_L'], r['FWHM_L_ci'])} | "
+            f"{_with_ci(r['haze'], r['haze_ci'], 1)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def fibre_tip_sentence(rows: list[dict]) -> str:
+    """What overlapping tips do to FWHM_L, with and without ray cells, read from the rows."""
+    parts = []
+    for ray_cells in (True, False):
+        mine = [r for r in rows if r["ray_cells"] == ray_cells]
+        flat = next(r for r in mine if not r["tip_um"])
+        tipped = [r for r in mine if r["tip_um"]]
+        resolved = [r for r in tipped if r["change"]["FWHM_L"].resolved]
+        moves = ", ".join(f"{_effect_cell(r['change']['FWHM_L'])} at λ = {r['tip_um']:g} µm" for r in tipped)
+        parts.append(f"{'with' if ray_cells else 'without'} ray cells, FWHM_L of {flat['FWHM_L']:.2f}° with flat "
+                     f"ends changes by {moves} ({len(resolved)} of {len(tipped)} resolved)")
+    mine = [r for r in rows if r["ray_cells"]]
+    flat, longest = mine[0], max(mine, key=lambda r: r["tip_um"])
+    grow = longest["interfaces_per_ray"] / flat["interfaces_per_ray"]
+    return ("; ".join(parts) + ". The oblique walls are also walls to cross: with ray cells, a ray meets "
+            f"{flat['interfaces_per_ray']:.0f} interfaces with flat ends and {longest['interfaces_per_ray']:.0f} at "
+            f"λ = {longest['tip_um']:g} µm ({100 * (grow - 1):+.0f} %); a random walk (FWHM_R ∝ √N, as over "
+            f"thickness in study 1) predicts FWHM_R {100 * (math.sqrt(grow) - 1):+.0f} %, against "
+            f"{longest['change']['FWHM_R'].change:+.0f} % measured.")
 
 
 def _effect_cell(e: Effect) -> str:
@@ -491,6 +567,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     all_effects = all_effects_of(tables, n_boot=n_boot)
     rows = table1_rows(tables)
     experiment = experiment_rows(base)
+    tips = fibre_tip_rows(base, n_boot=n_boot)
     paper_tables = load_table1(base / "paper-method")
     methods = method_rows(tables, paper_tables, n_boot=n_boot)
     p1 = paper_tables["study-1"]
@@ -606,6 +683,22 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("The measured hazes themselves are not part of this repository's specification, so they are not "
         "compared here; the table gives what a hazemeter would read on these model woods.")
     add("")
+    add("## Fibre tips and scattering along L")
+    add("")
+    add("In the generator of GENERATOR.md a fibre is straight along L and ends in a flat plate, so its walls are "
+        "almost parallel to L (the L component of their normals has an RMS of 0.03) and FWHM_L comes mostly from "
+        "the ray cells. Birch fibres end in long tapering tips that overlap their neighbours'. With "
+        "`fibre_tip_um` = λ, consecutive fibres of a file overlap over 2λ and meet along an oblique wall inclined "
+        "to L by atan(w/λ), w the lumen's half-width (docs/methods.md, \"Fibre tips\"). The Table 1 default wood "
+        "(birch, 1 mm, ΔRI 0.01) with and without ray cells, over λ (`make fibre-tips`; "
+        f"{tips[0]['realisations']} woods × {tips[0]['rays']} rays, the same woods as Table 1; changes are paired "
+        "against flat ends, hierarchical bootstrap 95 % intervals):")
+    add("")
+    L.extend(fibre_tip_markdown(tips))
+    add("")
+    add(fibre_tip_sentence(tips)[0].upper() + fibre_tip_sentence(tips)[1:] + " Table 1 keeps flat fibre ends "
+        "(λ = 0, GENERATOR.md), so its woods and numbers are the ones above at λ = 0.")
+    add("")
     add("## The virtual camera (Figure 5)")
     add("")
     add(f"A thin-lens camera looks through a {float(camera['thickness_um'].max()) / 1000:g} mm birch TW sheet "
@@ -638,6 +731,9 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         f"{_minutes(st['table1_small']['warm_s'])} when cached |")
     add(f"| the measured samples | `make experiment` | {_minutes(st['experiment_paper']['cold_s'])} cold |"
         if "experiment_paper" in st else "| the measured samples | `make experiment` | not recorded |")
+    add(f"| fibre tips, with and without ray cells | `make fibre-tips` | {_minutes(st['fibre_tips_paper']['cold_s'])} "
+        "(flat ends cached by `make table1`) |" if "fibre_tips_paper" in st
+        else "| fibre tips, with and without ray cells | `make fibre-tips` | not recorded |")
     if "table1_paper_method" in st:
         pm = st["table1_paper_method"]
         add(f"| Table 1, the paper's method | `make table1-paper-method YES=1` | {_minutes(pm['cold_s'])} cold on "

@@ -14,8 +14,8 @@ from pipeline.analysis import image_quality
 from pipeline.cli import main
 from pipeline.figures import sections, structure_label, trajectories
 from pipeline.params import build_params
-from pipeline.report import (TABLE1, build_report, effects, effects_markdown, figure_links, load_table1,
-                             table1_rows)
+from pipeline.report import (FIBRE_TIPS, TABLE1, build_report, effects, effects_markdown, figure_links,
+                             fibre_tip_rows, load_table1, table1_rows, tip_wall_angle_deg)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
@@ -112,13 +112,13 @@ def test_the_readme_links_the_report_and_shows_a_figure_in_its_first_screen():
 # ------------------------------------------------------------------ effects
 def _study(theta_by_value, status=None, dim="thickness", values=(1.0, 2.0)):
     """A minimal study Dataset whose stored numbers are the reduction of its rays."""
-    from pipeline.report import _reduce
+    from pipeline.report import reduce_rays
 
     n = len(theta_by_value[0][0])
     tr = np.array([t[0] for t in theta_by_value])
     tl = np.array([t[1] for t in theta_by_value])
     st = np.ones_like(tr, dtype=np.int32) if status is None else status
-    red = np.array([_reduce(tr[k], tl[k], st[k] == 1, np.arange(n)) for k in range(len(values))])
+    red = np.array([reduce_rays(tr[k], tl[k], st[k] == 1, np.arange(n)) for k in range(len(values))])
     ds = xr.Dataset({
         "theta_r": ((dim, "ray"), tr), "theta_l": ((dim, "ray"), tl),
         "status": ((dim, "ray"), st, {"flag_values": [1, 2, 3, 4, 5],
@@ -174,7 +174,7 @@ def test_untransmitted_rays_leave_the_widths_and_haze():
 def test_effects_over_woods_pair_the_woods_and_widen_with_them():
     """Two woods that scatter 1× and 3×: a value whose angles are all doubled is +100 % on every
     draw (paired), while each value's own interval spans the woods."""
-    from pipeline.report import _reduce, per_ray
+    from pipeline.report import reduce_rays, per_ray
 
     rng = np.random.default_rng(8)
     woods = [np.degrees(np.arctan(g * rng.standard_cauchy(400))) for g in (0.01, 0.03)]
@@ -182,7 +182,7 @@ def test_effects_over_woods_pair_the_woods_and_widen_with_them():
     tl = tr / 10
     st = np.ones_like(tr, dtype=np.int32)
     every = [(0, np.arange(400)), (1, np.arange(400))]
-    red = np.array([_reduce(tr[k], tl[k], st[k] == 1, every) for k in range(2)])
+    red = np.array([reduce_rays(tr[k], tl[k], st[k] == 1, every) for k in range(2)])
     ds = xr.Dataset({
         "theta_r": (("thickness", "realisation", "ray"), tr), "theta_l": (("thickness", "realisation", "ray"), tl),
         "status": (("thickness", "realisation", "ray"), st,
@@ -319,3 +319,40 @@ def test_the_committed_datasets_are_the_paper_scale_table1_over_five_woods_by_bo
             assert pm.attrs["rays"] == 500 and json.loads(pm.attrs["trace_settings"])["method"] == "paper"
             assert list(pm.seed_of_realisation.values) == [1, 2, 3, 4, 5]
             assert json.loads(pm.attrs["scenes"])[0]["wood"] == json.loads(ds.attrs["scenes"])[0]["wood"]
+
+
+def test_flat_fibre_ends_in_the_fibre_tip_studies_are_the_table1_woods_ray_for_ray():
+    """λ = 0 is the wood of Table 1 (the same cache key): its rays are those of study 5-1,
+    with and without ray cells, bit for bit; every tipped value is traced on the same seeds."""
+    with xr.open_zarr(RESULTS / "paper" / "study-5-1.zarr") as ref:
+        for name, ray_cells in zip(FIBRE_TIPS, (True, False)):
+            with xr.open_zarr(RESULTS / "paper" / "fibre-tips" / f"{name}.zarr") as ds:
+                assert list(ds.fibre_tip.values) == [0, 75, 150, 300]
+                assert list(ds.seed_of_realisation.values) == [1, 2, 3, 4, 5]
+                flat, same = ds.sel(fibre_tip=0), ref.sel(ray_cells=ray_cells)
+                for var in ("theta_r", "theta_l", "status"):
+                    np.testing.assert_array_equal(flat[var].values, same[var].values)
+                # The tips change the wood: the rays of λ = 150 µm are not those of flat ends.
+                assert not np.array_equal(ds.sel(fibre_tip=150).theta_l.values, flat.theta_l.values)
+
+
+def test_every_fibre_tip_number_in_the_report_is_its_dataset_value(report_text):
+    rows = fibre_tip_rows(RESULTS / "paper", n_boot=20)
+    assert len(rows) == 8
+    lines = [_cells(line) for line in report_text.splitlines()
+             if line.startswith("| yes |") or line.startswith("| no |")]
+    assert len(lines) == 8
+    for cells, r in zip(lines, rows):
+        assert cells[0] == ("yes" if r["ray_cells"] else "no") and _numbers(cells[1])[0] == r["tip_um"]
+        for cell, key, nd in ((cells[3], "FWHM_R", 2), (cells[4], "FWHM_L", 2), (cells[5], "haze", 1)):
+            np.testing.assert_allclose(_numbers(cell), [r[key], *r[f"{key}_ci"]], atol=0.51 * 10 ** -nd)
+        assert (cells[6] == "reference") == (r["tip_um"] == 0)
+
+
+def test_tip_wall_angle_is_the_lumen_half_width_over_the_tip_length():
+    wood = build_params("birch").to_dict()
+    assert tip_wall_angle_deg(wood) == 0.0
+    # Lumen semi-axes 6.25 and 7.25 µm: a mean half-width of ~6.74 µm.
+    for lam in (75.0, 150.0, 300.0):
+        angle = tip_wall_angle_deg({**wood, "fibre_tip_um": lam})
+        assert 6.6 / lam < np.radians(angle) < 6.9 / lam

@@ -266,16 +266,12 @@ def test_unchanged_rerun_computes_nothing_and_a_new_value_traces_only_itself(tmp
     study = tiny(tmp_path, [0.01, 0.03])
     args = ["study", str(study), "--scale", "small", "--cache", str(tmp_path / "c"),
             "--results", str(tmp_path / "r"), "--workers", "1"]
-    t0 = time.perf_counter()
     assert main(args) == 0
-    cold = time.perf_counter() - t0
     out = tmp_path / "r" / "tiny.zarr"
     stamp = os.stat(out / "zarr.json").st_mtime_ns
     entries = {p: p.stat().st_mtime_ns for p in (tmp_path / "c").rglob("*") if p.is_file()}
-    t0 = time.perf_counter()
+    # Nothing is computed or written again (how much faster that is: make bench, table1_small).
     assert main(args) == 0
-    warm = time.perf_counter() - t0
-    assert cold / warm >= 20, (cold, warm)
     assert os.stat(out / "zarr.json").st_mtime_ns == stamp
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "c").rglob("*") if p.is_file()} == entries
     capsys.readouterr()
