@@ -762,14 +762,17 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add(f"- **Wood.** The microstructure model follows GENERATOR.md; every value is {n_real} realisations "
         "of it, pooled. Switching ray cells or vessels off leaves every other structure where it was "
         "(tests/test_microstructure.py), so studies 5-1 and 5-2 change one factor each.")
-    add(_convergence_sentence(results))
+    fine = fine_voxel_sentence(fine_voxel_rows(results, n_boot=n_boot))
+    add(_convergence_sentence(results, fine_done=bool(fine)))
+    if fine:
+        add(fine)
     add("- **Angles.** Measured inside the sample, as the paper's models do; a hazemeter measures in air "
         "(`trace.exit: air` refracts each ray out of the exit face).")
     add("")
     return "\n".join(L)
 
 
-def _convergence_sentence(results: Path) -> str:
+def _convergence_sentence(results: Path, *, fine_done: bool = False) -> str:
     """What `make convergence` found (results/convergence.zarr), or that it has not run."""
     path = Path(results) / "convergence.zarr"
     if not path.exists():
@@ -790,7 +793,68 @@ def _convergence_sentence(results: Path) -> str:
             f"instead of 0.25 µm voxels FWHM_R moves by a median {v[0]:.1f} % (at most {v[1]:.0f} %, resolved for "
             f"{v[2]} of {n}), haze by {hv[0]:.1f} points, and FWHM_L by a median {lv[0]:.0f} % (resolved for "
             f"{lv[2]} of {n}): FWHM_L is not converged in the voxel, and the 0.25 µm values may be off by about as "
-            "much again; a run on 0.125 µm voxels (8× the wood) would say.")
+            "much again; " + ("study 5-1 on 0.125 µm voxels (8× the wood) below says how far." if fine_done
+                              else "a run on 0.125 µm voxels (8× the wood) would say."))
+
+
+FINE = ("study-5-1", "convergence/study-5-1-0.125um")  # the study, and it traced on 0.125 µm voxels
+
+
+def fine_voxel_rows(results: Path, *, n_boot: int = N_BOOT, seed: int = 0) -> list[dict]:
+    """Study 5-1, wood realisation 0, traced on 0.5 (results/convergence.zarr), 0.25 (the
+    study) and 0.125 µm voxels: FWHM_L at each, and the change from 0.25 to 0.125 µm with a
+    paired bootstrap over rays (the same entry points).  Empty when the 0.125 µm run is missing."""
+    results = Path(results)
+    fine_path = results / "paper" / f"{FINE[1]}.zarr"
+    conv_path = results / "convergence.zarr"
+    if not (fine_path.exists() and conv_path.exists()):
+        return []
+    study, fine, conv = (open_dataset(results / "paper" / f"{FINE[0]}.zarr"), open_dataset(fine_path),
+                         open_dataset(conv_path))
+    labels = list(conv["value"].values)
+    rng = np.random.default_rng(seed)
+    rows = []
+    dim = _dim(study)
+    for k in range(study.sizes[dim]):
+        a = [per_ray(study, v)[k, 0] for v in ("theta_r", "theta_l", "status")]
+        b = [per_ray(fine, v)[k, 0] for v in ("theta_r", "theta_l", "status")]
+        n = a[0].size
+        every = np.arange(n)
+        pa = reduce_rays(a[0], a[1], a[2] == TRANSMITTED, every)
+        pb = reduce_rays(b[0], b[1], b[2] == TRANSMITTED, every)
+        boots = []
+        for _ in range(n_boot):
+            idx = rng.integers(0, n, n)
+            ra = reduce_rays(a[0], a[1], a[2] == TRANSMITTED, idx)
+            rb = reduce_rays(b[0], b[1], b[2] == TRANSMITTED, idx)
+            boots.append(100 * (rb[1] / ra[1] - 1))
+        mine = [i for i, label in enumerate(labels) if label.startswith(FINE[0] + " ")]  # the study's order
+        coarse = float(conv["FWHM_L_voxel_0.5"].values[mine[k]])
+        rows.append({"value": value_label(study[dim].values[k]), "FWHM_L_0.5": coarse, "FWHM_L_0.25": float(pa[1]),
+                     "FWHM_L_0.125": float(pb[1]), "change": float(100 * (pb[1] / pa[1] - 1)),
+                     "ci": (float(np.quantile(boots, 0.025)), float(np.quantile(boots, 0.975))),
+                     "FWHM_R_change": float(100 * (pb[0] / pa[0] - 1)), "haze_change": float(100 * (pb[2] - pa[2]))})
+    return rows
+
+
+def fine_voxel_sentence(rows: list[dict]) -> str:
+    if not rows:
+        return ""
+    parts = []
+    for r in rows:
+        step1, step2 = r["FWHM_L_0.5"] - r["FWHM_L_0.25"], r["FWHM_L_0.25"] - r["FWHM_L_0.125"]
+        order = ""
+        if step1 * step2 > 0 and abs(step1) > abs(step2):
+            p = math.log2(step1 / step2)
+            order = (f", an error falling as h^{p:.1f}, which extrapolates to {r['FWHM_L_0.125'] - step2 / (2 ** p - 1):.2f}° "
+                     "at zero voxel")
+        parts.append(f"ray cells {r['value']}: {r['FWHM_L_0.5']:.3f}° → {r['FWHM_L_0.25']:.3f}° → {r['FWHM_L_0.125']:.3f}° "
+                     f"({r['change']:+.1f} % [{r['ci'][0]:+.1f}, {r['ci'][1]:+.1f}] from 0.25 to 0.125 µm{order}; "
+                     f"FWHM_R {r['FWHM_R_change']:+.1f} %, haze {r['haze_change']:+.1f} pts)")
+    return ("- **FWHM_L on 0.125 µm voxels** (study 5-1, wood realisation 0, the same 1000 rays; "
+            "`studies/convergence/study-5-1-0.125um.yaml`), FWHM_L on 0.5 → 0.25 → 0.125 µm voxels: "
+            + "; ".join(parts) + ". FWHM_L still falls as the voxel shrinks, so Table 1's values (0.25 µm) are upper bounds; "
+            "a change between two values is measured on one voxel, but its size may shrink with it too.")
 
 
 def figure_links(markdown: str) -> list[str]:

@@ -356,3 +356,17 @@ def test_tip_wall_angle_is_the_lumen_half_width_over_the_tip_length():
     for lam in (75.0, 150.0, 300.0):
         angle = tip_wall_angle_deg({**wood, "fibre_tip_um": lam})
         assert 6.6 / lam < np.radians(angle) < 6.9 / lam
+
+
+def test_the_fine_voxel_run_is_study_5_1_wood_1_on_a_quarter_of_the_study_voxel():
+    """The 0.125 µm run the report's convergence line reads: the same wood (seed 1) and beam as
+    study 5-1's realisation 0, with only the traced voxel changed."""
+    with xr.open_zarr(RESULTS / "paper" / "convergence" / "study-5-1-0.125um.zarr") as fine, \
+            xr.open_zarr(RESULTS / "paper" / "study-5-1.zarr") as ref:
+        assert json.loads(fine.attrs["trace_settings"])["refine"] == 4
+        assert json.loads(ref.attrs["trace_settings"])["refine"] == 2
+        assert list(fine.seed_of_realisation.values) == [1] and fine.sizes["ray"] == ref.sizes["ray"]
+        for a, b in zip(json.loads(fine.attrs["scenes"]), json.loads(ref.attrs["scenes"])):
+            assert {k: v for k, v in a["wood"].items() if k != "fibre_tip_um"} == b["wood"]
+            assert (a["seed"], a["beam_um"], a["thickness_um"], a["delta_ri"]) == \
+                (b["seed"], b["beam_um"], b["thickness_um"], b["delta_ri"])
