@@ -119,7 +119,7 @@ def _verify_wood(entry: Entry) -> list[tuple[Path, str]]:
 
     from .microstructure.store import WoodChunkStore
     from .microstructure.volume import ARRAY, _declares_digests
-    from .params import WoodParams, validate
+    from .params import WoodParams
     from .study.run import VERSIONS
 
     meta = _wood_meta(entry.path)
@@ -129,11 +129,8 @@ def _verify_wood(entry: Entry) -> list[tuple[Path, str]]:
         chunks = tuple(zarr.open_array(entry.path / ARRAY, mode="r").chunks)
     except Exception as exc:  # noqa: BLE001 - any failure to open is the finding
         return [(entry.path, f"its array does not open: {type(exc).__name__}")]
-    p = dict(meta.get("params") or {})
-    if p.get("laminate") is not None:
-        p["laminate"] = tuple(p["laminate"])
     try:
-        params = validate(WoodParams(**p))
+        params = WoodParams.from_dict(meta.get("params") or {})
     except (TypeError, ValueError):
         return [(entry.path, "not the wood its key names (or made by an older twray)")]
     # Keys hash WoodParams.key_dict: a store written before a field existed keeps its key.

@@ -92,6 +92,15 @@ class WoodParams:
             out["laminate"] = list(out["laminate"])
         return out
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "WoodParams":
+        """The inverse of :meth:`to_dict` (a stored wood's parameters), validated; a field the
+        stored dict lacks (added later) takes its default."""
+        d = dict(d)
+        if d.get("laminate") is not None:
+            d["laminate"] = tuple(d["laminate"])
+        return validate(cls(**d))
+
     def key_dict(self) -> dict[str, Any]:
         """:meth:`to_dict` without the fields added later that sit at their neutral value.
 

@@ -20,6 +20,8 @@ import numpy as np
 
 from .analysis import HAZE_ANGLE_DEG, fwhm, image_quality
 from .figures import TRANSMITTED, open_dataset, table1_structures, traced_voxel, value_label
+from .microstructure.model import tip_wall_angle_deg
+from .params import WoodParams
 
 TABLE1 = ("study-1", "study-2", "study-3", "study-4", "study-5-1", "study-5-2", "study-6")
 # The value of each study that the others are compared with: the Table 1 default scene
@@ -346,20 +348,6 @@ def experiment_markdown(rows: list[dict]) -> list[str]:
 FIBRE_TIPS = ("with-ray-cells", "without-ray-cells")
 
 
-def tip_wall_angle_deg(wood: dict) -> float:
-    """Inclination to L of the oblique wall between overlapping fibre tips: atan(w/λ), w the
-    lumen's half-width averaged over directions (docs/methods.md, "Fibre tips"); 0 for flat ends."""
-    lam = wood.get("fibre_tip_um", 0.0)
-    if not lam:
-        return 0.0
-    c = wood["fibre_diameter_um"] / 2.0
-    t = wood["wall_thickness_um"] / 2.0
-    push = wood["lumen_elongation_um"] * c / 7.25
-    phi = np.linspace(0.0, 2.0 * np.pi, 721)
-    w = np.mean(np.hypot((c - t) * np.cos(phi), (c + push - t) * np.sin(phi)))
-    return math.degrees(math.atan(w / lam))
-
-
 def fibre_tip_rows(base: Path, *, n_boot: int = N_BOOT) -> list[dict]:
     """The fibre-tip studies (with and without ray cells): each tip length pooled, and its change
     against flat fibre ends (the study's first value) as a paired hierarchical bootstrap."""
@@ -373,7 +361,7 @@ def fibre_tip_rows(base: Path, *, n_boot: int = N_BOOT) -> list[dict]:
             one, value = ds.isel({dim: k}), value_label(ds[dim].values[k])
             rows.append({
                 "study": name, "ray_cells": bool(scenes[k]["wood"]["ray_cells"]),
-                "tip_um": float(ds[dim].values[k]), "angle_deg": tip_wall_angle_deg(scenes[k]["wood"]),
+                "tip_um": float(ds[dim].values[k]), "angle_deg": tip_wall_angle_deg(WoodParams.from_dict(scenes[k]["wood"])),
                 "realisations": ds.sizes.get("realisation", 1), "rays": ds.sizes["ray"],
                 "interfaces_per_ray": float(one["interfaces_per_ray"]),
                 **{q: (100 if q == "haze" else 1) * float(one[q]) for q in ("FWHM_R", "FWHM_L", "haze")},
@@ -686,7 +674,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("## Fibre tips and scattering along L")
     add("")
     add("In the generator of GENERATOR.md a fibre is straight along L and ends in a flat plate, so its walls are "
-        "almost parallel to L (the L component of their normals has an RMS of 0.03) and FWHM_L comes mostly from "
+        "almost parallel to L (docs/methods.md, \"Fibre tips\", measures their normals) and FWHM_L comes mostly from "
         "the ray cells. Birch fibres end in long tapering tips that overlap their neighbours'. With "
         "`fibre_tip_um` = λ, consecutive fibres of a file overlap over 2λ and meet along an oblique wall inclined "
         "to L by atan(w/λ), w the lumen's half-width (docs/methods.md, \"Fibre tips\"). The Table 1 default wood "
@@ -696,7 +684,8 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     L.extend(fibre_tip_markdown(tips))
     add("")
-    add(fibre_tip_sentence(tips)[0].upper() + fibre_tip_sentence(tips)[1:] + " Table 1 keeps flat fibre ends "
+    tip_text = fibre_tip_sentence(tips)
+    add(tip_text[0].upper() + tip_text[1:] + " Table 1 keeps flat fibre ends "
         "(λ = 0, GENERATOR.md), so its woods and numbers are the ones above at λ = 0.")
     add("")
     add("## The virtual camera (Figure 5)")
@@ -812,6 +801,7 @@ def fine_voxel_rows(results: Path, *, n_boot: int = N_BOOT, seed: int = 0) -> li
     study, fine, conv = (open_dataset(results / "paper" / f"{FINE[0]}.zarr"), open_dataset(fine_path),
                          open_dataset(conv_path))
     labels = list(conv["value"].values)
+    mine = [i for i, label in enumerate(labels) if label.startswith(FINE[0] + " ")]  # the study's values, in order
     rng = np.random.default_rng(seed)
     rows = []
     dim = _dim(study)
@@ -828,7 +818,6 @@ def fine_voxel_rows(results: Path, *, n_boot: int = N_BOOT, seed: int = 0) -> li
             ra = reduce_rays(a[0], a[1], a[2] == TRANSMITTED, idx)
             rb = reduce_rays(b[0], b[1], b[2] == TRANSMITTED, idx)
             boots.append(100 * (rb[1] / ra[1] - 1))
-        mine = [i for i, label in enumerate(labels) if label.startswith(FINE[0] + " ")]  # the study's order
         coarse = float(conv["FWHM_L_voxel_0.5"].values[mine[k]])
         rows.append({"value": value_label(study[dim].values[k]), "FWHM_L_0.5": coarse, "FWHM_L_0.25": float(pa[1]),
                      "FWHM_L_0.125": float(pb[1]), "change": float(100 * (pb[1] / pa[1] - 1)),

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from pipeline.microstructure.model import N_STATS, STAT_NAMES, generate_block
+from pipeline.microstructure.model import N_STATS, STAT_NAMES, generate_block, lumen_half_width_um
 from pipeline.params import Grid, build_params, make_grid
 
 V = 0.5  # µm
@@ -387,10 +387,7 @@ def test_fibre_tips_are_oblique_walls_inclined_by_their_length(tip_woods):
     """Between overlapping tips the lumen is crossed by a wall 2t thick whose trace moves across
     the lumen (half-width w) at w/λ per µm of L; a line along L inside the lumen therefore meets
     wall over 2t·λ/w µm: a slope of w/λ (2.4° at λ = 150 µm), against 2 µm flat plates."""
-    t, c = 1.0, 7.25
-    a_r, a_t = c - t, c + 1.0 - t  # lumen semi-axes without jitter (elongation 1 µm along T)
-    phi = np.linspace(0, 2 * np.pi, 721)
-    w = np.mean(np.sqrt((a_r * np.cos(phi)) ** 2 + (a_t * np.sin(phi)) ** 2))  # mean half-width
+    t, w = 1.0, lumen_half_width_um(build_params("birch"))  # w ≈ 6.74 µm
     flat = wall_runs_inside_lumens_um(tip_woods[0], 1.0)
     assert flat.size > 200 and np.median(flat) <= 3.0  # the 2 µm end plates
     medians = {}
@@ -408,10 +405,7 @@ def test_fibre_tips_add_the_wall_of_their_oblique_plates(tip_woods):
     """Each fibre boundary (one per ~1170 µm of a fibre) trades a 2 µm flat plate across the
     lumen for an oblique wall of volume 2t·λ·A/w (A the lumen area): the wall fraction grows
     by the lumen fraction times (2tλ/w − 2 µm)/1170 µm."""
-    t, c, ell = 1.0, 7.25, 1170.5
-    a_r, a_t = c - t, c + 1.0 - t
-    phi = np.linspace(0, 2 * np.pi, 721)
-    w = np.mean(np.sqrt((a_r * np.cos(phi)) ** 2 + (a_t * np.sin(phi)) ** 2))
+    t, ell, w = 1.0, 1170.5, lumen_half_width_um(build_params("birch"))
     lumen = 1.0 - tip_woods[0].mean()
     for lam in (75, 150):
         grown = tip_woods[lam].mean() - tip_woods[0].mean()

@@ -13,9 +13,10 @@ import xarray as xr
 from pipeline.analysis import image_quality
 from pipeline.cli import main
 from pipeline.figures import sections, structure_label, trajectories
+from pipeline.microstructure.model import tip_wall_angle_deg
 from pipeline.params import build_params
 from pipeline.report import (FIBRE_TIPS, TABLE1, build_report, effects, effects_markdown, figure_links,
-                             fibre_tip_rows, load_table1, table1_rows, tip_wall_angle_deg)
+                             fibre_tip_rows, load_table1, table1_rows)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
@@ -350,11 +351,10 @@ def test_every_fibre_tip_number_in_the_report_is_its_dataset_value(report_text):
 
 
 def test_tip_wall_angle_is_the_lumen_half_width_over_the_tip_length():
-    wood = build_params("birch").to_dict()
-    assert tip_wall_angle_deg(wood) == 0.0
+    assert tip_wall_angle_deg(build_params("birch")) == 0.0
     # Lumen semi-axes 6.25 and 7.25 µm: a mean half-width of ~6.74 µm.
     for lam in (75.0, 150.0, 300.0):
-        angle = tip_wall_angle_deg({**wood, "fibre_tip_um": lam})
+        angle = tip_wall_angle_deg(build_params("birch", overrides={"fibre_tip_um": lam}))
         assert 6.6 / lam < np.radians(angle) < 6.9 / lam
 
 

@@ -61,6 +61,22 @@ def model_constants(p: WoodParams) -> np.ndarray:
     return M
 
 
+def lumen_half_width_um(p: WoodParams) -> float:
+    """A fibre lumen's half-width, averaged over directions in the R-T plane, for the nominal
+    lattice (no jitter): the inset ellipse of semi-axes c − t₀ (R) and c + push − t₀ (T)."""
+    c, t0 = p.node_pitch_um, p.wall_thickness_um / 2.0
+    phi = np.linspace(0.0, 2.0 * np.pi, 721)
+    return float(np.mean(np.hypot((c - t0) * np.cos(phi), (c + p.lumen_elongation_um * p.scale - t0) * np.sin(phi))))
+
+
+def tip_wall_angle_deg(p: WoodParams) -> float:
+    """Inclination to L of the oblique wall between overlapping fibre tips, atan(w/λ)
+    (docs/methods.md, "Fibre tips"); 0 for flat fibre ends."""
+    if not p.fibre_tip_um:
+        return 0.0
+    return math.degrees(math.atan(lumen_half_width_um(p) / p.fibre_tip_um))
+
+
 _tile_lock = threading.Lock()
 
 

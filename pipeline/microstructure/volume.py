@@ -28,7 +28,7 @@ from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
 from ..cache import temp_name, warn
-from ..params import Grid, ParameterError, WoodParams, validate
+from ..params import Grid, ParameterError, WoodParams
 from .model import generate_block
 
 ARRAY = "0"
@@ -235,10 +235,7 @@ class WoodVolume:
             meta = dict(group.attrs)["twray"]
         except Exception:
             raise ParameterError(f"`volume` must be a twray wood volume (.zarr), got {str(path)!r}") from None
-        p = dict(meta["params"])
-        if p.get("laminate") is not None:
-            p["laminate"] = tuple(p["laminate"])
-        params = validate(WoodParams(**p))
+        params = WoodParams.from_dict(meta["params"])
         shape = tuple(zarr.open_array(path / ARRAY, mode="r").shape)
         grid = Grid(shape, float(meta["voxel_um"]), tuple(meta["origin_um"]))
         return cls(path, params, grid, meta["seed"])
