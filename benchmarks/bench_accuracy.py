@@ -30,8 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.analysis import fwhm, haze
-from pipeline.optics.tracer import PRESETS, settings_for, square_beam
-from pipeline.optics.validation import compare_with_exact, honeycomb, tube_lattice
+from pipeline.optics.rays import square_beam
+from pipeline.optics.settings import PRESETS, settings_for
+from pipeline.optics.lattice import honeycomb, tube_lattice
+from pipeline.optics.validation import compare_with_exact
 
 VOXEL = 0.5  # µm: the studies' voxel
 PITCH_VOX = 29  # birch's fibre pitch at 0.5 µm

@@ -72,7 +72,7 @@ def anisotropy(samples: int) -> dict:
     from pipeline.camera.run import edge_widths
     from pipeline.camera.scene import load_camera
     from pipeline.camera.targets import make_target
-    from pipeline.optics.sources import WoodSource
+    from pipeline.optics.media import wood_medium
 
     study = load_camera(ROOT / "studies" / "camera" / "figure5.yaml")
     out = {"samples": samples}
@@ -82,9 +82,10 @@ def anisotropy(samples: int) -> dict:
         cam = replace(cfg.camera, samples=samples)
         sh = cfg.sheet
         t = make_target({"kind": "quadrant", "size_mm": 1.0})
-        src = WoodSource(sh.wood, thickness_um=sh.thickness_um, voxel_um=sh.voxel_um, seed=sh.seed)
+        medium = wood_medium(sh.wood, seed=sh.seed, thickness_um=sh.thickness_um, voxel_um=sh.voxel_um,
+                             settings=cfg.settings)
         t0 = time.perf_counter()
-        img = render_rows(cam, sh, t, np.arange(cam.pixels[0]), settings=cfg.settings, source=src).image
+        img = render_rows(cam, sh, t, np.arange(cam.pixels[0]), settings=cfg.settings, medium=medium).image
         px = cam.pitch_um / cam.magnification
         out[cfg.name] = {"object_pixel_um": px, "ideal": edge_widths(ideal_image(cam, t), px),
                          "through_sheet": edge_widths(img, px), "r_axis": sh.r_axis,

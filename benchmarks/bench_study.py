@@ -31,7 +31,9 @@ from _bench_json import write_section
 
 from pipeline.microstructure.store import WoodChunkStore
 from pipeline.optics.sources import WoodSource
-from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
+from pipeline.optics.rays import Beam, square_beam
+from pipeline.optics.settings import settings_for
+from pipeline.optics.voxels import trace_beam
 from pipeline.params import build_params
 
 ROOT = Path(__file__).resolve().parent.parent

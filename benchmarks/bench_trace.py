@@ -34,9 +34,11 @@ from scipy import stats
 
 from pipeline.analysis import summarize
 from pipeline.microstructure.model import generate_block
-from pipeline.optics import _kernels as K
+from pipeline.optics import _normals
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
-from pipeline.optics.tracer import Beam, settings_for, square_beam, svm_normal, trace_beam
+from pipeline.optics.rays import Beam, square_beam
+from pipeline.optics.settings import settings_for
+from pipeline.optics.voxels import svm_normal, trace_beam
 from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod,
                                        voxelised_sheet, voxelised_tube)
 from pipeline.params import build_params, make_grid
@@ -193,7 +195,7 @@ def _window_normals(bits, masks, table, box, cs, shape, X, D, s, out, wts, segs,
     """surface_normal of settings ``s`` = (sigma, radius, newton, refit) at each point X[r]."""
     nrm = np.empty(3)
     for r in range(X.shape[0]):
-        K.surface_normal(bits, masks, table, box, cs, shape, X[r], D[r], s[0], s[1], np.int64(s[2]),
+        _normals.surface_normal(bits, masks, table, box, cs, shape, X[r], D[r], s[0], s[1], np.int64(s[2]),
                          np.int64(s[3]), nrm, wts, segs, slots)
         out[r] = nrm
 
@@ -221,7 +223,7 @@ def normal_estimators(block, n_svm: int = 300, n_window: int = 100_000, seed: in
     view = (cache.bits, cache.masks, cache.table, cache.box, cache.chunk_shape,
             np.asarray(block.shape, np.int64))
     out = {"points": n_window, "svm_points": n_svm}
-    box = settings_for("paper").svm_box
+    box = settings_for("paper").voxel.svm_box
 
     def paper_normal(x):  # the box around x as the tracer reads it
         lo = np.floor(x).astype(np.int64) - (box // 2 - 1)
@@ -233,9 +235,9 @@ def normal_estimators(block, n_svm: int = 300, n_window: int = 100_000, seed: in
         paper_normal(x)
     out["paper_us"] = 1e6 * (time.perf_counter() - t0) / n_svm
     for m in ("fast", "accurate"):
-        st = settings_for(m)
+        st = settings_for(m).voxel
         s = np.array([st.sigma_vox, st.radius_vox, st.newton, st.refit], np.float64)
-        scratch = K.window_scratch(st.radius_vox)
+        scratch = _normals.window_scratch(st.radius_vox)
         normals = np.empty_like(X)
         _window_normals(*view, X[:10], D[:10], s, normals[:10], *scratch)  # compile
         best = math.inf

@@ -55,7 +55,7 @@ def scenes() -> dict:
 
 
 def lattice(what: str):
-    from pipeline.optics.validation import honeycomb, tube_lattice
+    from pipeline.optics.lattice import honeycomb, tube_lattice
 
     if what == "tubes":
         return tube_lattice(14.5, 7.25, 2.0, rotation_deg=8.0)
@@ -102,7 +102,9 @@ def run_point(p: dict) -> dict:
     """Trace one point cold in this process; its summary and its cost."""
     from pipeline.analysis import fwhm, fwhm_ci, haze, haze_ci, summarize
     from pipeline.optics.sources import WoodSource
-    from pipeline.optics.tracer import settings_for, square_beam, trace_beam
+    from pipeline.optics.rays import square_beam
+    from pipeline.optics.settings import settings_for
+    from pipeline.optics.voxels import trace_beam
     from pipeline.params import build_params
 
     kind, what, thickness, n_wall, n_poly = scenes()[p["scene"]]
@@ -431,7 +433,7 @@ def write(rows: list[dict], seconds: float, workers: int, results: Path) -> None
     """The Dataset, the figure and the Markdown report of ``rows``."""
     import shutil
 
-    from pipeline.study.run import write_zarr
+    from pipeline.publish import write_zarr
 
     out = results / "tradeoff.zarr"
     if out.exists():

@@ -31,7 +31,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from pipeline.report import TABLE1, reduce_rays  # noqa: E402
-from pipeline.study.run import compute, load_rays, plan_study  # noqa: E402
+from pipeline.study.graph import compute  # noqa: E402
+from pipeline.study.plan import plan_study  # noqa: E402
+from pipeline.study.tasks import load_rays  # noqa: E402
 from pipeline.study.spec import load_study, with_rays  # noqa: E402
 
 N_BOOT = 200
@@ -50,7 +52,7 @@ def variant(study, name: str):
 def angles(plan, i: int):
     """(θ_R, θ_L, transmitted) of value ``i`` of a one-realisation plan."""
     summ = next(s for s in plan.summaries if s.scene_index == i)
-    r, _ = load_rays(plan.shards_of(summ), plan.study.scenes[i].settings)
+    r, _ = load_rays(plan.shards_of(summ), plan.study.realisation(i, summ.realisation))
     return r.theta_r, r.theta_l, r.transmitted
 
 
@@ -130,7 +132,7 @@ def main(argv=None) -> int:
                            "variants": "baseline: accurate, 0.25 µm traced voxel, the study's rays; rays_4x: 4x the rays; "
                                        "voxel_0.5: 0.5 µm traced voxel (refine 1)"})
     out = Path(args.results)
-    from pipeline.study.run import write_zarr
+    from pipeline.publish import write_zarr
 
     import shutil
 

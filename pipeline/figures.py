@@ -32,7 +32,7 @@ import numpy as np
 
 from .analysis import HAZE_ANGLE_DEG, cauchy_fit, image_quality
 from .cache import atomic_write
-from .optics.tracer import STATUS_NAMES
+from .optics.interface import STATUS_NAMES
 from .params import Grid, WoodParams, build_params, validate
 
 TABLE1 = ("study-1", "study-2", "study-3", "study-4", "study-5-1", "study-5-2", "study-6")
@@ -196,22 +196,23 @@ def trajectories(record: dict, *, n_rays: int = 16, every: int = 3, seed: int = 
     Returns (points, status): points of shape (n_rays, K, 3) along [R, T, L],
     the last row of each ray repeated once it has left; status the final one.
     """
-    from .optics.sources import WoodSource
-    from .optics.tracer import TraceSettings, square_beam, trace_beam, traced_voxel_um
+    from .optics.media import wood_medium
+    from .optics.rays import square_beam
+    from .optics.settings import Optics, TraceSettings
+    from .optics.trace import trace
 
-    settings = TraceSettings(**record["settings"]).validate()
-    v = traced_voxel_um(record["voxel_um"], settings)
-    source = WoodSource(wood_of(record), thickness_um=record["thickness_um"], voxel_um=v, seed=record["seed"],
-                        threads=os.cpu_count() or 1)
-    beam = square_beam(n_rays, record["beam_um"] / v, seed=seed)
-    kw = dict(n_wall=record["ri_polymer"] + record["delta_ri"], n_poly=record["ri_polymer"], seed=record["seed"])
-    full = trace_beam(source, beam, settings=settings, **kw)
+    settings = TraceSettings.from_dict(record["settings"]).validate()
+    medium = wood_medium(wood_of(record), seed=record["seed"], thickness_um=record["thickness_um"],
+                         voxel_um=record["voxel_um"], settings=settings, threads=os.cpu_count() or 1)
+    beam = square_beam(n_rays, record["beam_um"], seed=seed)
+    optics = Optics.of_delta(record["ri_polymer"], record["delta_ri"], seed=record["seed"])
+    full = trace(medium, beam, optics, settings)
     points = [beam.origins.copy()]
     for k in range(every, int(full.events.max()) + every, every):
-        part = trace_beam(source, beam, settings=dataclasses.replace(settings, max_events=k), **kw)
+        part = trace(medium, beam, optics, dataclasses.replace(settings, max_events=k))
         points.append(np.where((part.status == TRAPPED)[:, None], part.position, full.position))
     points.append(full.position)
-    return np.stack(points, axis=1) * v, full.status
+    return np.stack(points, axis=1), full.status
 
 
 def plot_trajectories(points: np.ndarray, status: np.ndarray, caption: str, path: Path) -> Path:
@@ -424,6 +425,6 @@ def make_figures(results: Path, out: Path, *, which: set[str] | None = None, log
 
 def traced_voxel(record: dict) -> float:
     """The voxel a scene record's wood was traced on [µm]."""
-    from .optics.tracer import TraceSettings, traced_voxel_um
+    from .optics.settings import TraceSettings, traced_voxel_um
 
-    return traced_voxel_um(record["voxel_um"], TraceSettings(**record["settings"]))
+    return traced_voxel_um(record["voxel_um"], TraceSettings.from_dict(record["settings"]))

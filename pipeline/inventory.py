@@ -117,10 +117,9 @@ def verify(entry: Entry) -> list[tuple[Path, str]]:
 def _verify_wood(entry: Entry) -> list[tuple[Path, str]]:
     import zarr
 
-    from .microstructure.store import WoodChunkStore
-    from .microstructure.volume import ARRAY, _declares_digests
+    from .microstructure.store import WoodChunkStore, wood_record
+    from .microstructure.volume import ARRAY, declares_digests
     from .params import WoodParams
-    from .study.run import VERSIONS
 
     meta = _wood_meta(entry.path)
     if meta is None:
@@ -133,12 +132,9 @@ def _verify_wood(entry: Entry) -> list[tuple[Path, str]]:
         params = WoodParams.from_dict(meta.get("params") or {})
     except (TypeError, ValueError):
         return [(entry.path, "not the wood its key names (or made by an older twray)")]
-    # Keys hash WoodParams.key_dict: a store written before a field existed keeps its key.
-    record = {"stage": "micro", "version": VERSIONS["micro"], "wood": params.key_dict(),
-              "seed": meta.get("seed"), "voxel_um": meta.get("voxel_um"), "chunks": list(chunks)}
-    if cache_key(record) != entry.key:
+    if cache_key(wood_record(params, meta.get("seed"), meta.get("voxel_um"), chunks)) != entry.key:
         return [(entry.path, "not the wood its key names (or made by an older twray)")]
-    if not _declares_digests(entry.path):
+    if not declares_digests(entry.path):
         return [(entry.path, "its chunks carry no digests")]
     store = WoodChunkStore(entry.path, params, seed=meta["seed"], voxel_um=meta["voxel_um"], chunks=chunks)
     problems = []
@@ -146,7 +142,7 @@ def _verify_wood(entry: Entry) -> list[tuple[Path, str]]:
     for f in sorted(root.rglob("*")) if root.is_dir() else []:
         if f.is_file() and f.name.isdigit():
             d = tuple(int(x) for x in f.relative_to(root).parts)
-            why = store._files.check(d)[1]
+            why = store.check(d)
             if why:
                 problems.append((f, why))
     return problems
@@ -163,9 +159,10 @@ def keys_in_use(files, scales, cache) -> set:
     """The keys of every entry the study and camera files need at ``scales``."""
     from .camera.run import plan_camera
     from .camera.scene import load_camera
-    from .optics.tracer import traced_voxel_um
+    from .optics.settings import traced_voxel_um
     from .params import ParameterError
-    from .study.run import plan_study, wood_record
+    from .microstructure.store import wood_record
+    from .study.plan import plan_study
     from .study.spec import load_study
 
     keys = set()
@@ -181,7 +178,7 @@ def keys_in_use(files, scales, cache) -> set:
                 for e in entries:
                     keys.add(e.key)
                     sh = e.config.sheet
-                    if sh is not None:
+                    if sh is not None and e.config.settings.medium_kind == "voxels":
                         keys.add(cache_key(wood_record(sh.wood, sh.seed,
                                                        traced_voxel_um(sh.voxel_um, e.config.settings))))
                 continue

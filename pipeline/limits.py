@@ -146,7 +146,7 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
 def camera_estimate(images) -> Estimate:
     """Images through a sheet: every pixel's aperture samples traced, the sheet's wood (at
     most all of it) generated once and kept on disk."""
-    from .optics.tracer import traced_voxel_um
+    from .optics.settings import traced_voxel_um
 
     est = Estimate()
     woods = {}

@@ -410,8 +410,9 @@ class Grid:
     origin_um: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
-def make_grid(size_um, voxel_um: float, origin_um, params: WoodParams) -> Grid:
-    """Validate the sampling of a sample of ``size_um`` and return its grid."""
+def check_voxel(voxel_um, params: WoodParams) -> float:
+    """``voxel_um`` if it samples the wood of ``params``: > 0 and at most half the wall (at least
+    two voxels across a wall); a ParameterError naming the rule otherwise."""
     if not (isinstance(voxel_um, (int, float)) and math.isfinite(voxel_um) and voxel_um > 0):
         raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel_um!r}")
     thinnest = params.wall_thickness_um
@@ -420,6 +421,12 @@ def make_grid(size_um, voxel_um: float, origin_um, params: WoodParams) -> Grid:
             f"`voxel_um` must be <= wall_thickness_um/2 = {thinnest / 2:g} µm "
             f"(at least two voxels across a wall), got voxel_um={voxel_um:g}"
         )
+    return voxel_um
+
+
+def make_grid(size_um, voxel_um: float, origin_um, params: WoodParams) -> Grid:
+    """Validate the sampling of a sample of ``size_um`` and return its grid."""
+    check_voxel(voxel_um, params)
     shape = []
     for axis, s in zip("RTL", size_um):
         n = int(round(s / voxel_um))

@@ -7,19 +7,18 @@ import json
 import shlex
 import sys
 
-from . import __version__
+from . import __version__, versions
 
 
-def provenance_attrs(inputs: dict) -> dict:
-    """Attributes naming twray's, the tracer's and the generator's versions, the full resolved
-    ``inputs`` (as JSON), the date and the command line."""
-    from .optics.tracer import TRACER_VERSION
-    from .study.run import VERSIONS
-
+def provenance_attrs(inputs: dict, method: str | None = None) -> dict:
+    """Attributes naming twray's and the generator's versions, the tracing method ``method``
+    and its version (for what was traced), the full resolved ``inputs`` (as JSON), the date
+    and the command line."""
+    traced = {} if method is None else {"tracing_method": method, "tracer_version": versions.tracer(method)}
     return {
         "twray_version": __version__,
-        "tracer_version": TRACER_VERSION,
-        "generator_version": VERSIONS["micro"],
+        **traced,
+        "generator_version": versions.GENERATOR,
         "date_created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command_line": shlex.join([sys.argv[0].rsplit("/", 1)[-1], *sys.argv[1:]]),
         "inputs": json.dumps(inputs, sort_keys=True, default=str),

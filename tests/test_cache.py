@@ -19,9 +19,10 @@ from pipeline.cache import (cache_key, check_json, check_npz, entry_record, is_l
                             temp_name, write_json, write_npz)
 from pipeline.cli import main
 from pipeline.microstructure.store import WoodChunkStore
-from pipeline.microstructure.volume import WoodVolume, publish
+from pipeline.microstructure.volume import WoodVolume
+from pipeline.publish import publish
 from pipeline.params import build_params, make_grid
-from pipeline.study.run import plan_study
+from pipeline.study.plan import plan_study
 from pipeline.study.spec import load_study
 
 STUDY = """\

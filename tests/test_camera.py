@@ -10,8 +10,8 @@ from pipeline.camera.run import compute, edge_widths, load_entry, plan_camera, w
 from pipeline.camera.scene import load_camera
 from pipeline.camera.targets import make_target
 from pipeline.cli import main
-from pipeline.optics.sources import WoodSource
-from pipeline.optics.tracer import settings_for
+from pipeline.optics.media import wood_medium
+from pipeline.optics.settings import settings_for
 from pipeline.params import ParameterError, build_params
 
 BIRCH = build_params("birch")
@@ -25,10 +25,10 @@ def sheet(**kw) -> Sheet:
 
 
 def render(camera, sh, target, method="fast"):
-    src = None if sh is None else WoodSource(sh.wood, thickness_um=sh.thickness_um,
-                                              voxel_um=sh.voxel_um, seed=sh.seed)
-    return render_rows(camera, sh, target, np.arange(camera.pixels[0]), settings=settings_for(method),
-                       source=src)
+    settings = settings_for(method)
+    medium = None if sh is None else wood_medium(sh.wood, seed=sh.seed, thickness_um=sh.thickness_um,
+                                                 voxel_um=sh.voxel_um, settings=settings)
+    return render_rows(camera, sh, target, np.arange(camera.pixels[0]), settings=settings, medium=medium)
 
 
 # ---------------------------------------------------------------------- optics of the camera

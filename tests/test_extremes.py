@@ -15,10 +15,12 @@ import numpy as np
 import pytest
 
 from pipeline.analysis import summarize
-from pipeline.optics import _kernels as K
+from pipeline.optics import interface
 from pipeline.optics.sources import ArraySource, WoodSource
-from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
-from pipeline.optics.validation import tube_lattice
+from pipeline.optics.rays import Beam, square_beam
+from pipeline.optics.settings import settings_for
+from pipeline.optics.voxels import trace_beam
+from pipeline.optics.lattice import tube_lattice
 from pipeline.params import ParameterError, build_params
 from pipeline.study.spec import load_study
 
@@ -94,7 +96,7 @@ def test_a_ray_just_inside_the_critical_angle_refracts_and_just_past_it_reflects
                          n_wall=n_wall, n_poly=n_poly, settings=settings_for(method, refine=1))
         sound(res)
         out = res.direction[0]
-        assert res.status[0] == K.TRANSMITTED and res.events[0] == 1
+        assert res.status[0] == interface.TRANSMITTED and res.events[0] == 1
         if eps < 0:  # refracted into the polymer, nearly along the face
             assert out[0] < 0 and n_poly * out[1] == pytest.approx(n_wall * d[1], abs=1e-9)
             assert res.position[0, 0] < 32.0
@@ -137,7 +139,7 @@ def test_grazing_incidence_from_air_refracts_to_the_critical_angle_and_leaves_pa
                                                 np.arange(1)),
                          n_wall=1.5, n_poly=1.49, settings=settings_for(method, exit="air"), n_outside=1.0)
         sound(res)
-        assert res.status[0] == K.TRANSMITTED
+        assert res.status[0] == interface.TRANSMITTED
         assert res.direction[0, 0] == pytest.approx(math.sin(math.radians(89.9)) / 1.49, abs=1e-12)
         assert math.degrees(math.asin(res.direction[0, 0])) < math.degrees(math.asin(1 / 1.49))
         assert np.allclose(res.exit_direction[0], [math.sin(math.radians(89.9)), math.cos(math.radians(89.9)), 0.0],
@@ -153,7 +155,7 @@ def test_a_study_whose_paper_step_is_not_smaller_than_the_wall_is_refused(tmp_pa
         load_study(path)
     path.write_text("voxel_um: 1.0\ntrace: {method: paper, step_vox: 1.5}\n"
                     "vary: {parameter: delta_ri, values: [0.01]}\n")
-    assert load_study(path).scenes[0].settings.step_vox == 1.5
+    assert load_study(path).scenes[0].settings.voxel.step_vox == 1.5
     path.write_text("trace: {method: paper, step_vox: -1}\nvary: {parameter: delta_ri, values: [0.01]}\n")
     with pytest.raises(ParameterError, match=r"`trace.step_vox` must be > 0 voxels, got -1"):
         load_study(path)
@@ -196,7 +198,7 @@ def test_a_ray_guided_by_total_internal_reflection_is_counted_at_the_event_cap_n
     free = trace_beam(ArraySource(vol), beam, n_wall=1.79, n_poly=1.49, settings=settings_for("fast"))
     sound(free)
     bounces = 400 * math.tan(math.radians(20)) / 8
-    assert free.status[0] == K.TRANSMITTED and abs(free.events[0] - bounces) <= 2
+    assert free.status[0] == interface.TRANSMITTED and abs(free.events[0] - bounces) <= 2
     assert np.allclose(np.abs(free.direction[0]), d, atol=1e-9)  # every bounce is total: mirrored
     for method in METHODS:
         capped = trace_beam(ArraySource(vol), beam, n_wall=1.79, n_poly=1.49,

@@ -143,20 +143,20 @@ def end_plates(vol, voxel_um, plate_max_um=4.0, open_min_um=5.0):
 
 def ray_row_distance_um(p, seed, t_um):
     """Distance along T from each of ``t_um`` to the nearest ray column's node row [µm]."""
-    from pipeline.microstructure import _kernels as K
+    from pipeline.microstructure import _constants, _ray_cells
     from pipeline.microstructure.model import model_constants
 
     M = model_constants(p)
-    k = np.arange(math.floor(t_um.min() / (M[K.RSPACE] * M[K.PITCH])) - 2,
-                  math.ceil(t_um.max() / (M[K.RSPACE] * M[K.PITCH])) + 3)
-    rows = np.array([K.ray_row(seed, M, int(q)) for q in k]) * M[K.PITCH]
+    k = np.arange(math.floor(t_um.min() / (M[_constants.RSPACE] * M[_constants.PITCH])) - 2,
+                  math.ceil(t_um.max() / (M[_constants.RSPACE] * M[_constants.PITCH])) + 3)
+    rows = np.array([_ray_cells.ray_row(seed, M, int(q)) for q in k]) * M[_constants.PITCH]
     return np.min(np.abs(t_um[:, None] - rows[None, :]), axis=1)
 
 
 def test_switching_ray_cells_off_changes_the_ray_tissue_alone():
     """One factor at a time (study 5-1): the same vessels, and the same voxels farther than the
     ray band and its squeeze (~80 µm) from every ray column."""
-    from pipeline.microstructure import _kernels as K
+    from pipeline.microstructure import _vessels
     from pipeline.microstructure.model import model_constants
 
     seed = 3
@@ -166,7 +166,7 @@ def test_switching_ray_cells_off_changes_the_ray_tissue_alone():
     lists = []
     for p in (p_on, p_off):
         out = np.empty((4096, 5), np.int64)
-        n = K.vessels_in_region(seed, model_constants(p), -40, 70, -40, 120, out)
+        n = _vessels.vessels_in_region(seed, model_constants(p), -40, 70, -40, 120, out)
         lists.append(out[:n])
     assert len(lists[0]) >= 20 and np.array_equal(lists[0], lists[1])
     differ = on != off
@@ -178,7 +178,7 @@ def test_switching_ray_cells_off_changes_the_ray_tissue_alone():
 def test_switching_vessels_off_leaves_the_fibres_away_from_vessels():
     """Study 5-2: the fibre lattice does not move; fibres differ only where the vessels stood
     and where the vessels pushed them (a dipole decaying over ~100 µm)."""
-    from pipeline.microstructure import _kernels as K
+    from pipeline.microstructure import _constants, _vessels
     from pipeline.microstructure.model import model_constants
 
     seed = 3
@@ -186,8 +186,8 @@ def test_switching_vessels_off_leaves_the_fibres_away_from_vessels():
     off = block((200, 400, 50), seed=seed, voxel_um=1.0, vessels=False)
     M = model_constants(build_params("birch"))
     out = np.empty((4096, 5), np.int64)
-    n = K.vessels_in_region(seed, M, -40, 70, -40, 90, out)
-    c_r, c_t = out[:n, 0] * M[K.PITCH], out[:n, 1] * M[K.PITCH]
+    n = _vessels.vessels_in_region(seed, M, -40, 70, -40, 90, out)
+    c_r, c_t = out[:n, 0] * M[_constants.PITCH], out[:n, 1] * M[_constants.PITCH]
     r, t = np.arange(on.shape[0]) * 1.0, np.arange(on.shape[1]) * 1.0
     dist = np.sqrt((r[:, None, None] - c_r) ** 2 + (t[None, :, None] - c_t) ** 2).min(axis=2)
     differ = (on != off).mean(axis=2)
@@ -338,7 +338,7 @@ def test_generated_voxels_are_pinned_for_the_cache_version(preset, overrides, st
                                                            digest):
     import hashlib
 
-    from pipeline.study.run import VERSIONS
+    from pipeline.versions import STAGES as VERSIONS
 
     p = build_params(preset, overrides=overrides)
     g = make_grid((100, 100, 100), V, (0, 0, 0), p)
@@ -347,7 +347,7 @@ def test_generated_voxels_are_pinned_for_the_cache_version(preset, overrides, st
     # version 2 wherever the wood has ray cells (without them, vessels no longer move).
     assert VERSIONS["micro"] == "3", "new micro version: re-pin these digests"
     assert got == digest, (f"the voxels of {holds} changed; if that is intended, bump "
-                           f"VERSIONS['micro'] in pipeline/study/run.py and re-pin")
+                           f"STAGES['micro'] in pipeline/versions.py and re-pin")
 
 
 def test_the_same_wood_at_half_the_voxel_agrees_at_every_shared_voxel_centre():
@@ -429,7 +429,7 @@ KEY_TABLE1_DEFAULT_WOOD = "b10f58756b3b44b14247aeb4"  # birch, seed 1, traced on
 def test_a_wood_without_fibre_tips_keeps_its_cache_key():
     """fibre_tip_um is left out of cache keys at 0, so the woods traced before it existed
     (every committed study) keep their keys and cached chunks."""
-    from pipeline.study.run import wood_record
+    from pipeline.microstructure.store import wood_record
 
     birch = build_params("birch")
     assert "fibre_tip_um" not in wood_record(birch, 1, 0.25)["wood"]

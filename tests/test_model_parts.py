@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pipeline.microstructure import _kernels as K
-from pipeline.microstructure import _rng
+from pipeline.microstructure import _constants, _lattice, _ray_cells, _vessels
+from pipeline import rng as _rng
 from pipeline.microstructure.model import model_constants
 from pipeline.params import build_params
 
@@ -24,7 +24,7 @@ def test_fibre_chain_lengths_follow_the_length_distribution():
     seed, mean, sd, min_len = np.uint64(5), 1170.5, 290.5, 50.0
     x, lengths = -2.0e6, []
     while x < 2.0e6:  # walk the chain across the origin, far into negative L
-        lo, hi = K.chain_interval(x, seed, _rng.FIBRE_END, 3, -4, 100.0, mean, sd, min_len)
+        lo, hi = _lattice.chain_interval(x, seed, _rng.FIBRE_END, 3, -4, 100.0, mean, sd, min_len)
         assert lo <= x < hi
         lengths.append(hi - lo)
         x = hi
@@ -38,9 +38,9 @@ def test_vessel_layout_does_not_depend_on_the_region_asked_for():
     M = model_constants(build_params("birch"))
     seed = np.uint64(8)
     big = np.empty((4096, 5), np.int64)
-    nb = K.vessels_in_region(seed, M, -100, 100, -100, 100, big)
+    nb = _vessels.vessels_in_region(seed, M, -100, 100, -100, 100, big)
     small = np.empty((4096, 5), np.int64)
-    ns = K.vessels_in_region(seed, M, 10, 40, -30, 0, small)
+    ns = _vessels.vessels_in_region(seed, M, 10, 40, -30, 0, small)
     in_small = {tuple(r[:2]) for r in small[:ns]}
     in_big = {tuple(r[:2]) for r in big[:nb]}
     assert ns > 0 and in_small <= in_big
@@ -49,8 +49,8 @@ def test_vessel_layout_does_not_depend_on_the_region_asked_for():
     for i in range(nb):
         for j in range(i + 1, nb):
             if rows[i, 2] != rows[j, 2]:
-                assert (abs(rows[i, 0] - rows[j, 0]) >= K.VHARD_R
-                        or abs(rows[i, 1] - rows[j, 1]) >= K.VHARD_T)
+                assert (abs(rows[i, 0] - rows[j, 0]) >= _constants.VHARD_R
+                        or abs(rows[i, 1] - rows[j, 1]) >= _constants.VHARD_T)
     # Vessels keep clear of ray rows.
     for m in rows[:, 1]:
-        assert not K.near_ray(seed, M, m, K.VRAY_CLEAR)
+        assert not _ray_cells.near_ray(seed, M, m, _constants.VRAY_CLEAR)

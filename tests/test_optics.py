@@ -7,9 +7,11 @@ import pytest
 from scipy import ndimage, optimize, stats
 
 from pipeline.analysis import cauchy_fit, fwhm, haze, summarize
-from pipeline.optics import _kernels as K
+from pipeline.optics import _normals, _packing, interface
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
-from pipeline.optics.tracer import Beam, settings_for, square_beam, trace_beam
+from pipeline.optics.rays import Beam, square_beam
+from pipeline.optics.settings import settings_for
+from pipeline.optics.voxels import trace_beam
 from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod,
                                        voxelised_sheet, voxelised_tube)
 from pipeline.params import ParameterError, build_params
@@ -31,7 +33,7 @@ def test_refraction_obeys_snell_to_machine_precision(n1, n2, angle_deg):
     nrm = np.array([0.0, -1.0, 0.0])  # faces the incoming ray travelling along +T
     d = np.array([math.sin(a), math.cos(a), 0.0])
     out = np.empty(3)
-    tir = K.refract(d, nrm, n1, n2, out)
+    tir = interface.refract(d, nrm, n1, n2, out)
     critical = math.asin(min(1.0, n2 / n1))
     if n1 > n2 and a >= critical:
         assert tir
@@ -50,14 +52,14 @@ def test_total_internal_reflection_exactly_at_the_critical_angle():
     out = np.empty(3)
     below = crit * (1 - 1e-9)
     above = crit * (1 + 1e-9)
-    assert not K.refract(np.array([math.sin(below), math.cos(below), 0.0]), nrm, n1, n2, out)
-    assert K.refract(np.array([math.sin(above), math.cos(above), 0.0]), nrm, n1, n2, out)
+    assert not interface.refract(np.array([math.sin(below), math.cos(below), 0.0]), nrm, n1, n2, out)
+    assert interface.refract(np.array([math.sin(above), math.cos(above), 0.0]), nrm, n1, n2, out)
 
 
 def test_fresnel_reflectance_limits():
-    assert K.fresnel_reflectance(1.0, 1.0, 1.5) == pytest.approx(0.04, abs=1e-12)
-    assert K.fresnel_reflectance(1.0, 1.49, 1.50) == pytest.approx((0.01 / 2.99) ** 2, rel=1e-9)
-    assert K.fresnel_reflectance(math.cos(math.radians(85)), 1.5, 1.0) == 1.0
+    assert interface.fresnel_reflectance(1.0, 1.0, 1.5) == pytest.approx(0.04, abs=1e-12)
+    assert interface.fresnel_reflectance(1.0, 1.49, 1.50) == pytest.approx((0.01 / 2.99) ** 2, rel=1e-9)
+    assert interface.fresnel_reflectance(math.cos(math.radians(85)), 1.5, 1.0) == 1.0
 
 
 # ---------------------------------------------------------------- index matched
@@ -132,7 +134,7 @@ def test_row_masks_name_exactly_the_all_wall_and_all_polymer_rows_of_each_segmen
     vol[:, 2::6, 20:40] = 1  # rows uniform over some L segments only
     vol[rng.integers(0, 40, 200), rng.integers(0, 70, 200), rng.integers(0, 150, 200)] ^= 1
     cache, _ = resident(vol, (16, 70, 72))  # rows of 72 voxels: two words, the second partly used
-    seg = K.MASK_SEG
+    seg = _packing.MASK_SEG
     assert cache.masks.shape[2] == -(-72 // seg) == 5  # the last segment holds 8 voxels
     for key, s in cache.slots.items():
         sl = tuple(slice(k * c, (k + 1) * c) for k, c in zip(key, cache.source.chunks))
@@ -155,7 +157,7 @@ def test_a_run_of_row_mask_bits_is_read_across_mask_words_and_segments():
     bits = np.unpackbits(masks.view(np.uint8), axis=-1, bitorder="little").reshape(2, 3, 3, 2, 128)
     for g0, g1 in ((0, 0), (1, 2), (0, 2)):
         for o0 in (0, 1, 37, 63, 64, 70, 100):
-            got = int(K._mask_run(masks, 1, 2, g0, g1, 1, o0))
+            got = int(_normals._mask_run(masks, 1, 2, g0, g1, 1, o0))
             n = min(64, 128 - o0)
             run = bits[1, 2, g0:g1 + 1, 1, o0:o0 + n].all(axis=0)
             want = sum(int(b) << q for q, b in enumerate(run))
@@ -165,8 +167,8 @@ def test_a_run_of_row_mask_bits_is_read_across_mask_words_and_segments():
 def test_a_square_beams_ray_positions_are_hashes_of_seed_and_ray_id():
     """Ray i's entry point depends on (seed, i) only: a beam of fewer rays is the
     start of a longer one, and each coordinate is the documented hash."""
-    from pipeline.microstructure import _rng
-    from pipeline.optics.tracer import BEAM_KIND
+    from pipeline import rng as _rng
+    from pipeline.rng import BEAM as BEAM_KIND
 
     long, short = square_beam(300, 40.0, (5.0, -2.0), seed=11), square_beam(17, 40.0, (5.0, -2.0), seed=11)
     assert np.array_equal(long.origins[:17], short.origins)
@@ -249,8 +251,8 @@ def test_bit_packed_chunks_read_back_every_voxel():
     vol = (np.random.default_rng(1).random((70, 33, 150)) < 0.4).astype(np.uint8)
     cache, view = resident(vol, (32, 16, 70))
     assert np.array_equal(cache.voxels((0, 0, 0), vol.shape), vol)
-    assert K.voxel_at(*view, 70, 5, 5) == K.OUTSIDE  # R chunk 2 spans 64-95, the volume ends at 70
-    assert K.voxel_at(*view, 5, 5, 150) == K.OUTSIDE  # L chunk 2 spans 140-209
+    assert _packing.voxel_at(*view, 70, 5, 5) == _packing.OUTSIDE  # R chunk 2 spans 64-95, the volume ends at 70
+    assert _packing.voxel_at(*view, 5, 5, 150) == _packing.OUTSIDE  # L chunk 2 spans 140-209
 
 
 @pytest.mark.parametrize("shape", [(16, 16, 64), (16, 9, 128), (5, 7, 136), (16, 16, 40), (7, 9, 70)])
@@ -272,21 +274,21 @@ def test_packing_64_voxels_per_compare_equals_packing_voxel_by_voxel(shape):
         for i, j, k in zip(*np.nonzero(chunk)):
             ref[i, j, k // 64] |= np.uint64(1) << np.uint64(k % 64)
         got = np.full(slot, 9, np.uint64)
-        masks = np.full((slot[0], K.mask_segments(n_l), 2, 1), 9, np.uint64)
-        assert K.pack_chunks(chunk, got[None], masks[None], [0], n_l)
+        masks = np.full((slot[0], _packing.mask_segments(n_l), 2, 1), 9, np.uint64)
+        assert _packing.pack_chunks(chunk, got[None], masks[None], [0], n_l)
         assert np.array_equal(got, ref)
         padded = np.zeros(slot[:2] + (n_l,), bool)
         padded[: shape[0], : shape[1], : shape[2]] = chunk
         flags = np.unpackbits(masks.view(np.uint8), axis=-1, bitorder="little").astype(bool)
         assert not flags[..., slot[1]:].any()  # no rows beyond the slot
-        for g in range(K.mask_segments(n_l)):
-            part = padded[:, :, g * K.MASK_SEG:(g + 1) * K.MASK_SEG]
+        for g in range(_packing.mask_segments(n_l)):
+            part = padded[:, :, g * _packing.MASK_SEG:(g + 1) * _packing.MASK_SEG]
             assert np.array_equal(flags[:, g, 0, : slot[1]], part.all(axis=2)), g
             assert np.array_equal(flags[:, g, 1, : slot[1]], ~part.any(axis=2)), g
     for k in range(64):  # a bad value in any byte of a row is caught
         chunk = np.zeros(shape, np.uint8)
         chunk[2, 3, k % shape[2]] = (2, 3, 128, 255)[k % 4]
-        assert not K.pack_chunks(chunk, np.zeros((1,) + slot, np.uint64), masks[None], [0], n_l)
+        assert not _packing.pack_chunks(chunk, np.zeros((1,) + slot, np.uint64), masks[None], [0], n_l)
 
 
 def test_chunks_side_by_side_along_l_are_packed_as_each_alone():
@@ -299,10 +301,10 @@ def test_chunks_side_by_side_along_l_are_packed_as_each_alone():
     slots, n_l = [5, 1, 3], 128  # chunk q (L from 128 q; the last holds 22 voxels) goes to slots[q]
     bits = np.full((6, 16, 30, 2), 9, np.uint64)
     masks = np.full((6, 16, 8, 2, 1), 9, np.uint64)
-    assert K.pack_chunks(vol, bits, masks, slots, n_l)
+    assert _packing.pack_chunks(vol, bits, masks, slots, n_l)
     for q, s in enumerate(slots):
         alone, alone_masks = np.full((1, 16, 30, 2), 7, np.uint64), np.full((1, 16, 8, 2, 1), 7, np.uint64)
-        assert K.pack_chunks(vol[:, :, n_l * q:n_l * (q + 1)], alone, alone_masks, [0], n_l)
+        assert _packing.pack_chunks(vol[:, :, n_l * q:n_l * (q + 1)], alone, alone_masks, [0], n_l)
         assert np.array_equal(bits[s], alone[0]) and np.array_equal(masks[s], alone_masks[0]), q
     assert np.all(bits[[0, 2, 4]] == 9) and np.all(masks[[0, 2, 4]] == 9)
 
@@ -347,19 +349,19 @@ def test_the_normal_window_is_the_same_whatever_the_chunking():
     views = [window_view(*resident(vol, chunks))
              for chunks in [(48, 100, 48), (16, 24, 20), (20, 13, 64), (16, 100, 20)]]
     views.append(window_view(*resident(vol, (48, 100, 48)), masks=np.zeros((1, 48, 3, 2, 2), np.uint64)))
-    scratch = K.window_scratch(5.25)
+    scratch = _normals.window_scratch(5.25)
     pts = np.column_stack([rng.uniform(-2, 50, 400), rng.uniform(-2, 102, 400), rng.uniform(-2, 50, 400)])
     for x in pts:
         out = []
         for view in views:
             g, h = np.empty(3), np.empty(6)
-            s = K.smoothed_wall(*view, x, 1.75, 5.25, g, h, *scratch)
+            s = _normals.smoothed_wall(*view, x, 1.75, 5.25, g, h, *scratch)
             out.append(np.concatenate([[s], g, h]))
         assert all(np.array_equal(out[0], o) for o in out[1:]), x
 
 
 def test_chunk_sets_of_live_rays_are_exact():
-    from pipeline.optics.tracer import _chunks_of_boxes, _unique_rows
+    from pipeline.optics.voxels import _chunks_of_boxes, _unique_rows
 
     rng = np.random.default_rng(0)
     for spread in [5] * 50 + [3000] * 5:  # boxes close together (a grid of them) or far apart
@@ -394,11 +396,11 @@ def test_smoothed_wall_gradient_and_hessian_are_the_derivatives_of_S():
     rng = np.random.default_rng(3)
     vol = (ndimage.gaussian_filter(rng.random((40, 40, 40)), 2.5) > 0.5).astype(np.uint8)
     view = window_view(*resident(vol, (16, 24, 20)))
-    scratch = K.window_scratch(6.0)
+    scratch = _normals.window_scratch(6.0)
 
     def S(x):
         g, h = np.empty(3), np.empty(6)
-        s = K.smoothed_wall(*view, np.asarray(x, np.float64), 2.0, 6.0, g, h, *scratch)
+        s = _normals.smoothed_wall(*view, np.asarray(x, np.float64), 2.0, 6.0, g, h, *scratch)
         H = np.array([[h[0], h[3], h[4]], [h[3], h[1], h[5]], [h[4], h[5], h[2]]])
         return s, g.copy(), H
 
@@ -749,10 +751,10 @@ def test_the_axis_across_a_sheet_is_the_hessians_extreme_eigenvector(valley):
         h = (H[0, 0], H[1, 1], H[2, 2], H[0, 1], H[0, 2], H[1, 2])
         start = unit(Q[:, 0] + 0.3 * rng.normal(size=3))
         out = start.copy()
-        K._sheet_normal(h, out, valley)
+        _normals._sheet_normal(h, out, valley)
         assert np.allclose(out, Q[:, 0] * np.sign(Q[:, 0] @ start), atol=1e-9)
         # No single axis across (two nearly equal curvatures, as along a thin rod): kept.
         H = Q @ np.diag(sign * np.array([-3.0, -2.9, 0.4])) @ Q.T
         out = start.copy()
-        K._sheet_normal((H[0, 0], H[1, 1], H[2, 2], H[0, 1], H[0, 2], H[1, 2]), out, valley)
+        _normals._sheet_normal((H[0, 0], H[1, 1], H[2, 2], H[0, 1], H[0, 2], H[1, 2]), out, valley)
         assert np.array_equal(out, start)

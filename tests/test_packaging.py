@@ -5,7 +5,8 @@ import json
 import subprocess
 import sys
 
-from pipeline.cli import main, strict_json
+from pipeline.cli import main
+from pipeline.trace_job import strict_json
 
 
 def test_presets_are_package_data():
@@ -55,7 +56,9 @@ def test_every_subcommand_has_a_description_examples_and_help_for_every_flag():
                 assert action.help, f"twray {name} {action.option_strings or action.dest} has no help"
 
 
-PROVENANCE = ("twray_version", "tracer_version", "generator_version", "date_created", "command_line", "inputs")
+# What every written file says of how it was made; what was traced also names its method and its version.
+PROVENANCE = ("twray_version", "generator_version", "date_created", "command_line", "inputs")
+TRACED = PROVENANCE + ("tracing_method", "tracer_version")
 
 
 def test_results_carry_their_provenance_and_open_with_plain_xarray_without_warnings(tmp_path, capsys):
@@ -83,11 +86,13 @@ def test_results_carry_their_provenance_and_open_with_plain_xarray_without_warni
 
     volume = dict(zarr.open_group(tmp_path / "v.zarr", mode="r").attrs)
     assert all(k in volume for k in PROVENANCE) and json.loads(volume["inputs"])["seed"] == 5
-    from pipeline.optics.tracer import TRACER_VERSION
+    from pipeline.versions import tracer
 
+    assert "tracer_version" not in volume  # a volume is generated, not traced
     for d in (ds, tz, tn):
-        assert all(k in d.attrs for k in PROVENANCE), sorted(d.attrs)
-        assert d.attrs["tracer_version"] == TRACER_VERSION and d.attrs["date_created"].startswith("20")
+        assert all(k in d.attrs for k in TRACED), sorted(d.attrs)
+        assert d.attrs["tracing_method"] == "fast"
+        assert d.attrs["tracer_version"] == tracer(d.attrs["tracing_method"]) and d.attrs["date_created"].startswith("20")
     inputs = json.loads(tz.attrs["inputs"])
     assert inputs["seed"] == 7 and inputs["rays"] == 20 and inputs["settings"]["method"] == "fast"
     assert inputs["params"]["species"] == "birch" and inputs["thickness_mm"] == 0.03

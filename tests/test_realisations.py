@@ -9,7 +9,8 @@ import xarray as xr
 
 from pipeline.analysis import fwhm, pool
 from pipeline.cli import main
-from pipeline.optics.tracer import RayResult, settings_for
+from pipeline.optics.rays import RayResult
+from pipeline.optics.settings import settings_for
 from pipeline.params import ParameterError
 from pipeline.study.spec import load_study
 

@@ -15,7 +15,9 @@ from pipeline.microstructure.store import WoodChunkStore
 from pipeline.optics.sources import WoodSource
 from pipeline.params import ParameterError, build_params
 from pipeline.cache import atomic_write as _atomic_write
-from pipeline.study.run import (_store, compute, plan_study, study_dataset, write_dataset)
+from pipeline.study.dataset import study_dataset, write_dataset
+from pipeline.study.graph import compute
+from pipeline.study.plan import plan_study
 from pipeline.study.spec import load_study
 
 TABLE1 = Path(__file__).resolve().parent.parent / "studies" / "table1"
@@ -353,7 +355,7 @@ def test_accurate_models_the_wood_on_voxels_half_the_studys_and_refine_is_a_sett
              ((fast, tiny(tmp_path, [0.01], "a.yaml")), (three, path))}
     m1, m3 = (next(iter(plans[k].micros.values())) for k in (1, 3))
     assert m1.key != m3.key
-    assert _store(m3).voxel_um == pytest.approx(0.5 / 3) and _store(m1).voxel_um == 0.5
+    assert m3.store().voxel_um == pytest.approx(0.5 / 3) and m1.store().voxel_um == 0.5
 
 
 def test_a_refined_study_equals_the_trace_command_for_the_same_scene(tmp_path, client, capsys):

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from pipeline.analysis import fwhm, haze
-from pipeline.optics.tracer import settings_for, square_beam
-from pipeline.optics.validation import (compare_with_exact, honeycomb, rod_deflection_deg, smoothed_ks,
-                                       tube_deflection_deg, tube_lattice)
+from pipeline.optics.rays import square_beam
+from pipeline.optics.settings import settings_for
+from pipeline.optics.lattice import honeycomb, tube_lattice
+from pipeline.optics.validation import compare_with_exact, rod_deflection_deg, smoothed_ks, tube_deflection_deg
 
 INDICES = [(1.50, 1.49), (1.49, 1.50), (1.51, 1.49), (1.49, 1.52)]
 
@@ -108,7 +109,7 @@ def test_directions_stay_unit_and_the_optical_momentum_along_l_is_conserved(name
     np.testing.assert_allclose(np.linalg.norm(res.direction, axis=1), 1.0, atol=1e-12)
     start = lat.phase(o[:, 0], [0.0])[:, 0]
     n_start = np.where(start == 1, n_wall, n_poly)
-    n_end = np.where(res.medium == 1, n_wall, n_poly)
+    n_end = np.where(res.extras["medium"] == 1, n_wall, n_poly)
     np.testing.assert_allclose(n_end * res.direction[:, 2], n_start * d[:, 2], atol=1e-12)
     assert res.events.mean() > 5
 
@@ -120,8 +121,8 @@ def test_the_phase_a_ray_ends_in_is_the_lattices_phase_there(name):
     res = lat.trace(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=47.3)
     back = res.position - 1e-6 * res.direction
     phase = np.array([lat.phase([p[0]], [p[1]])[0, 0] for p in back])
-    assert np.array_equal(phase, res.medium)
-    assert 0 < res.medium.mean() < 1
+    assert np.array_equal(phase, res.extras["medium"])
+    assert 0 < res.extras["medium"].mean() < 1
 
 
 @pytest.mark.parametrize("name", list(lattices()))

@@ -17,7 +17,7 @@ Backward tracing: for each pixel, ``samples`` points on the aperture
 (equal-area polar strata, one jittered point each, the pattern rotated per
 pixel) start rays that the ideal lens sends toward the pixel's in-focus
 object point.  Each ray crosses the air to the sheet, refracts into the
-phase it meets, is traced through the wood (:func:`~pipeline.optics.tracer.trace_beam`),
+phase it meets, is traced through the wood (:func:`~pipeline.optics.trace.trace`),
 refracts out into air, crosses the gap, and reads the object bilinearly.
 The pixel value is the mean over its samples.  A sample whose ray does not
 come out of the exit face (reflected back, total internal reflection at the
@@ -36,13 +36,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numba import njit
 
-from ..microstructure import _rng
+from .. import rng as _rng
 from ..params import ParameterError, WoodParams
-from ..optics.tracer import PRESETS, Beam, TraceSettings, trace_beam
-from ..optics import _kernels as K
+from ..optics.interface import TRANSMITTED
+from ..optics.rays import Beam
+from ..optics.settings import PRESETS, Optics, TraceSettings
+from ..optics.trace import trace
 from .targets import Target
 
-APERTURE_KIND = 61
+APERTURE_KIND = _rng.APERTURE
 
 
 @dataclass(frozen=True)
@@ -169,11 +171,12 @@ class RowsImage:
 
 
 def render_rows(camera: Camera, sheet: Sheet | None, target: Target, rows, *,
-                settings: TraceSettings | None = None, source=None) -> RowsImage:
-    """Render the sensor rows ``rows`` (backward tracing, SPEC.md §7).
+                settings: TraceSettings | None = None, medium=None) -> RowsImage:
+    """Render the sensor rows ``rows`` (backward tracing, docs/methods.md#virtual-camera).
 
-    ``source`` is the sheet's voxel source (a WoodSource of ``sheet``); it may
-    be omitted when ``sheet`` is None (nothing between lens and object).
+    ``medium`` is the sheet's wood as the medium ``settings`` traces
+    (:func:`pipeline.optics.media.wood_medium` of ``sheet``); it may be omitted
+    when ``sheet`` is None (nothing between lens and object).
     """
     rows = np.asarray(rows, np.int64)
     # Angles are needed in air, after the exit face.
@@ -212,23 +215,22 @@ def render_rows(camera: Camera, sheet: Sheet | None, target: Target, rows, *,
         r_is_x = sheet.r_axis == "x"
         er, el = (ex, ey) if r_is_x else (ey, ex)
         dr, dl = (dd[:, 0], dd[:, 1]) if r_is_x else (dd[:, 1], dd[:, 0])
-        vox = sheet.voxel_um * mm
-        origins = np.column_stack([er / vox, np.zeros_like(er), el / vox])
+        origins = np.column_stack([er / mm, np.zeros_like(er), el / mm])  # [µm]
         dirs = np.column_stack([dr, dd[:, 2], dl])
         ids = (pid[:, None] * S + np.arange(S)[None, :]).reshape(-1)
-        res = trace_beam(source, Beam(origins, dirs, ids), n_wall=sheet.ri_wall,
-                         n_poly=sheet.ri_polymer, settings=settings, seed=sheet.seed, n_outside=1.0)
+        res = trace(medium, Beam(origins, dirs, ids),
+                    Optics(sheet.ri_wall, sheet.ri_polymer, n_outside=1.0, seed=sheet.seed), settings)
         interfaces = float(res.events.sum())
         loads = res.chunks_loaded
-        xr = res.position[:, 0] * vox
-        xl = res.position[:, 2] * vox
+        xr = res.position[:, 0] * mm
+        xl = res.position[:, 2] * mm
         out = res.exit_direction
         gap = sheet.gap_um * mm
         with np.errstate(divide="ignore", invalid="ignore"):
             hr = xr + gap * out[:, 0] / out[:, 1]
             hl = xl + gap * out[:, 2] / out[:, 1]
         hit_x, hit_y = (hr, hl) if r_is_x else (hl, hr)
-        lost = ((res.status != K.TRANSMITTED)
+        lost = ((res.status != TRANSMITTED)
                 | (np.abs(xr) > 0.5 * sheet.width_um * mm) | (np.abs(xl) > 0.5 * sheet.length_um * mm))
     value = np.where(lost, 0.0, target.lookup(np.where(lost, 0.0, hit_x), np.where(lost, 0.0, hit_y)))
     image = value.reshape(rows.size, nx, S).mean(axis=-1)

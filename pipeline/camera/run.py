@@ -3,7 +3,7 @@
 Each image is split into blocks of sensor rows, one task each; the tasks of
 all images run on one ``distributed.Client``.  The sheet's wood comes from
 the same content-addressed chunk store as the studies'
-(``cache/micro/<key>.zarr``, see :func:`pipeline.study.run.wood_store`), so
+(``cache/micro/<key>.zarr``, see :func:`pipeline.microstructure.store.wood_store`), so
 only the chunks that camera rays visit are generated, once, and a sheet of
 the Table 1 base wood reuses the chunks the studies made.  A finished image
 is a cache entry ``cache/camera/<key>.npz`` whose key hashes the camera, the
@@ -28,12 +28,13 @@ import numpy as np
 
 from .. import __version__
 from ..cache import DamagedEntry, atomic_write, cache_key, check_npz, read_npz, sound, write_npz
-from ..study.run import publish_dataset, wood_record, wood_store
-from ..optics.tracer import TRACER_VERSION, traced_voxel_um
+from .. import versions
+from ..microstructure.store import wood_record, wood_store
+from ..optics.settings import traced_voxel_um
+from ..publish import publish_dataset
 from .lens import RowsImage, ideal_image, render_rows
 from .scene import CameraStudy, ImageConfig
 
-VERSION = "2"  # 2: entries verified (key and digest)
 ROWS_PER_TASK = 3
 
 
@@ -51,11 +52,12 @@ def image_record(cfg: ImageConfig) -> dict:
     if cfg.sheet is not None:
         sheet = dataclasses.asdict(cfg.sheet)
         sheet["wood"] = cfg.sheet.wood.key_dict()
-        sheet["micro"] = wood_record(cfg.sheet.wood, cfg.sheet.seed,
-                                     traced_voxel_um(cfg.sheet.voxel_um, cfg.settings))
-    return {"stage": "camera", "version": VERSION, "tracer": TRACER_VERSION,
+        if cfg.settings.medium_kind == "voxels":  # the chunks it reads
+            sheet["micro"] = wood_record(cfg.sheet.wood, cfg.sheet.seed,
+                                         traced_voxel_um(cfg.sheet.voxel_um, cfg.settings))
+    return {"stage": "camera", "version": versions.CAMERA, "tracer": versions.tracer(cfg.settings.method),
             "camera": dataclasses.asdict(cfg.camera),
-            "sheet": sheet, "object": cfg.target.digest(), "settings": dataclasses.asdict(cfg.settings)}
+            "sheet": sheet, "object": cfg.target.digest(), "settings": cfg.settings.to_dict()}
 
 
 def plan_camera(study: CameraStudy, cache_dir) -> list[Entry]:
@@ -70,18 +72,17 @@ def plan_camera(study: CameraStudy, cache_dir) -> list[Entry]:
 # ---------------------------------------------------------------------- tasks (run on workers)
 def render_block(cfg: ImageConfig, lo: int, hi: int, cache_dir: str) -> RowsImage:
     """Sensor rows [lo, hi) of one image."""
-    from ..optics.sources import WoodSource
+    from ..optics.media import wood_medium
 
-    source = None
+    medium = None
     sh = cfg.sheet
     if sh is not None:
-        # The sheet's wood on the voxels it is traced on (settings.refine).
-        sh = dataclasses.replace(sh, voxel_um=traced_voxel_um(sh.voxel_um, cfg.settings))
-        store = wood_store(cache_dir, sh.wood, sh.seed, sh.voxel_um)
-        source = WoodSource(sh.wood, thickness_um=sh.thickness_um, voxel_um=sh.voxel_um,
-                            seed=sh.seed, store=store)
-    return render_rows(cfg.camera, sh, cfg.target, np.arange(lo, hi), settings=cfg.settings,
-                       source=source)
+        store = None
+        if cfg.settings.medium_kind == "voxels":
+            store = wood_store(cache_dir, sh.wood, sh.seed, traced_voxel_um(sh.voxel_um, cfg.settings))
+        medium = wood_medium(sh.wood, seed=sh.seed, thickness_um=sh.thickness_um, voxel_um=sh.voxel_um,
+                             settings=cfg.settings, store=store)
+    return render_rows(cfg.camera, sh, cfg.target, np.arange(lo, hi), settings=cfg.settings, medium=medium)
 
 
 def assemble(cfg: ImageConfig, path: str, *blocks: RowsImage) -> dict:
@@ -254,14 +255,14 @@ def camera_dataset(study: CameraStudy, entries: list[Entry]):
             "samples_per_pixel": cfgs[0].camera.samples,
             "pixel_pitch_um": cfgs[0].camera.pitch_um,
             "r_axis": json.dumps({c.name: (None if c.sheet is None else c.sheet.r_axis) for c in cfgs}),
-            "trace_settings": json.dumps(dataclasses.asdict(cfgs[0].settings)),
+            "trace_settings": json.dumps(cfgs[0].settings.to_dict()),
             "cache_keys": json.dumps({e.config.name: e.key for e in entries}),
         },
     )
     from ..provenance import provenance_attrs
 
     ds.attrs.update(provenance_attrs({"camera": study.name, "scale": study.scale,
-                                      "images": [image_record(c) for c in cfgs]}))
+                                      "images": [image_record(c) for c in cfgs]}, study.images[0].settings.method))
     return ds
 
 

@@ -32,8 +32,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..optics.tracer import PRESETS, TraceSettings, settings_for
-from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, load_preset,
+from ..optics.settings import INDEX_RANGE, TraceSettings, check_method, settings_for
+from ..params import (ParameterError, WOOD_FIELDS, WoodParams, check_voxel, coerce_field, load_preset,
                       read_yaml_file, validate, yaml_locator)
 from .lens import Camera, Sheet
 from .targets import Target, make_target
@@ -133,8 +133,10 @@ def load_camera(path, *, scale: str = "paper") -> CameraStudy:
 
     trace = mapping(data.get("trace"), ("trace",), _TRACE)
     method = trace.get("method", "fast")
-    if method not in PRESETS:
-        fail(("trace", "method"), f"`trace.method` must be one of {', '.join(PRESETS)}, got {method!r}")
+    try:
+        check_method(method, "trace.method", kind="voxels")
+    except ParameterError as exc:
+        fail(("trace", "method"), str(exc))
     fresnel = trace.get("fresnel", False)
     if not isinstance(fresnel, bool):
         fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {fresnel!r}")
@@ -216,11 +218,14 @@ def _sheet(s: dict, own, gap_um: float, f: dict, fail, number, integer, keys) ->
     except ParameterError as exc:
         fail(loc("wood"), str(exc))
     voxel = number(s["voxel_um"], loc("voxel_um"), "> 0 µm", lambda v: v > 0)
-    if voxel > params.wall_thickness_um / 2:
-        fail(loc("voxel_um"), f"`sheet.voxel_um` must be <= wall_thickness_um/2 = "
-                                    f"{params.wall_thickness_um / 2:g} µm, got voxel_um={voxel:g}")
+    try:
+        check_voxel(voxel, params)
+    except ParameterError as exc:
+        fail(loc("voxel_um"), "`sheet." + str(exc).lstrip("`"))
     thickness_um = 1000.0 * number(s["thickness_mm"], loc("thickness_mm"), "> 0 mm",
                                    lambda v: v > 0) * f["thickness"]
+    lo, hi = INDEX_RANGE
+    index_rule, index_ok = f"in [{lo:g}, {hi:g}]", lambda v: lo <= v <= hi
     r_axis = s["r_axis"]
     if r_axis not in ("x", "y"):
         fail(loc("r_axis"), f"`sheet.r_axis` must be x or y (the sensor axis along R), got {r_axis!r}")
@@ -229,8 +234,8 @@ def _sheet(s: dict, own, gap_um: float, f: dict, fail, number, integer, keys) ->
         thickness_um=thickness_um,
         width_um=1000.0 * number(s["width_mm"], loc("width_mm"), "> 0 mm", lambda v: v > 0),
         length_um=1000.0 * number(s["length_mm"], loc("length_mm"), "> 0 mm", lambda v: v > 0),
-        ri_wall=number(s["ri_wall"], loc("ri_wall"), "in [1, 3]", lambda v: 1 <= v <= 3),
-        ri_polymer=number(s["ri_polymer"], loc("ri_polymer"), "in [1, 3]", lambda v: 1 <= v <= 3),
+        ri_wall=number(s["ri_wall"], loc("ri_wall"), index_rule, index_ok),
+        ri_polymer=number(s["ri_polymer"], loc("ri_polymer"), index_rule, index_ok),
         gap_um=gap_um, r_axis=r_axis)
     try:
         return sheet.validate()

@@ -14,8 +14,11 @@ import threading
 import numpy as np
 
 from ..params import Grid, WoodParams
-from . import _kernels as K
-from . import _rng
+from . import _constants as K
+from ._block import fill_block
+from ._distortion import distortion_tile
+from ._vessels import vessels_in_region
+from .. import rng as _rng
 
 N_STATS = 5
 STAT_NAMES = ("node_states", "voxels", "dipole_terms", "chain_lookups", "distortion_tiles")
@@ -87,7 +90,7 @@ def _tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.nda
     M = np.frombuffer(M_bytes, dtype=np.float64)
     out = np.empty((K.TILE + 1, K.TILE + 1, 2))
     stats = np.zeros(N_STATS, np.int64)
-    K.distortion_tile(np.uint64(seed), M, a, b, out, stats)
+    distortion_tile(np.uint64(seed), M, a, b, out, stats)
     out.setflags(write=False)
     return out, stats
 
@@ -183,13 +186,13 @@ def generate_block(
         margin = dmax + max(c, 0.5 * params.ray_seriate * (params.ray_cell_width_um
                                                             + params.wall_thickness_um))
         vessels = np.empty((4096, 5), np.int64)
-        nv = K.vessels_in_region(
+        nv = vessels_in_region(
             pseed, M,
             math.floor((r_lo - margin) / c) - 6, math.ceil((r_hi + margin) / c) + 6,
             math.floor((tt_lo - margin) / c) - 6, math.ceil((tt_hi + margin) / c) + 6,
             vessels,
         )
-        K.fill_block(buf, pseed, M, gstart, org, v, j_lo, j_hi,
+        fill_block(buf, pseed, M, gstart, org, v, j_lo, j_hi,
                      np.array([cs, sn, oR, oT, oL]), patch, gi0, gj0, dmax,
                      vessels[:max(nv, 1)], nv, stats)
     return buf

@@ -34,11 +34,13 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from .. import __version__
+from .. import __version__, versions
+from ..cache import cache_key
 from ..params import Grid, WoodParams
+from ..publish import staged_path
 from .model import generate_block
-from .volume import (ARRAY, AXES, DIGEST_SCHEME, NOT_GENERATED, ChunkFiles, _declares_digests, _ome_attrs,
-                     chunk_identity, staged_path)
+from .volume import (ARRAY, AXES, DIGEST_SCHEME, NOT_GENERATED, ChunkFiles, declares_digests, _ome_attrs,
+                     chunk_identity)
 
 OFFSET = 160  # chunks held on disk on each side of the origin along R and L
 T_CHUNKS = 256  # chunks held on disk along T (8 mm with 64-voxel chunks of 0.5 µm)
@@ -134,10 +136,14 @@ class WoodChunkStore:
             self._create()
         self._array = zarr.open_array(self.path / ARRAY, mode="r+")
         identity = None
-        if _declares_digests(self.path):
+        if declares_digests(self.path):
             grid = Grid(self._array.shape, self.voxel_um, self._disk_origin())
             identity = chunk_identity(self.params, self.seed, grid, self.chunks)
         self._files = ChunkFiles.of(self._array, self.path / ARRAY, identity)
+
+    def check(self, idx) -> str | None:
+        """Why the stored file of chunk ``idx`` cannot be trusted, or None when it can."""
+        return self._files.check(idx)[1]
 
     def _disk_origin(self) -> tuple:
         cR, _, cL = self.chunks
@@ -257,3 +263,22 @@ class WoodChunkStore:
         data.setflags(write=False)
         _memory.put(key, data, data.nbytes)
         return data
+
+
+# The chunk shape of every cached wood store (studies and camera share stores).
+CHUNKS = (64, 64, 64)
+
+
+def wood_record(wood: WoodParams, seed: int, voxel_um: float, chunks=CHUNKS) -> dict:
+    """What a wood field's chunks depend on: the record its cache key hashes (shared by studies,
+    the camera and ``twray cache verify``).  Keys hash :meth:`WoodParams.key_dict`: a store
+    written before a field existed keeps its key."""
+    return {"stage": "micro", "version": versions.STAGES["micro"], "wood": wood.key_dict(),
+            "seed": seed, "voxel_um": voxel_um, "chunks": list(chunks)}
+
+
+def wood_store(cache_dir, wood: WoodParams, seed: int, voxel_um: float) -> WoodChunkStore:
+    """The chunk store of a wood field under ``cache_dir/micro/``."""
+    key = cache_key(wood_record(wood, seed, voxel_um))
+    return WoodChunkStore(Path(cache_dir) / "micro" / f"{key}.zarr", wood, seed=seed,
+                          voxel_um=voxel_um, chunks=CHUNKS)

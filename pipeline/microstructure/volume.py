@@ -9,14 +9,11 @@ once.  Chunks never written read as the sentinel :data:`NOT_GENERATED`.
 
 from __future__ import annotations
 
-import contextlib
-import errno
 import hashlib
 import itertools
 import json
 import math
 import os
-import shutil
 import struct
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -28,13 +25,13 @@ from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
 from ..cache import temp_name, warn
+from ..publish import check_replaceable
 from ..params import Grid, ParameterError, WoodParams
 from .model import generate_block
 
 ARRAY = "0"
 NOT_GENERATED = 255
 AXES = ("r", "t", "l")
-PUBLISH_TRIES = 50
 PYRAMID_TOP = 512  # generated volumes get coarser levels until this many voxels along every axis
 
 
@@ -180,7 +177,7 @@ class WoodVolume:
         self.seed = int(seed)
         self._array = zarr.open_array(self.path / ARRAY, mode="r+")
         identity = (chunk_identity(params, self.seed, grid, self._array.chunks)
-                    if _declares_digests(self.path) else None)
+                    if declares_digests(self.path) else None)
         self._files = ChunkFiles.of(self._array, self.path / ARRAY, identity)
 
     # ------------------------------------------------------------------ create/open
@@ -438,7 +435,7 @@ def _generate_chunks(path: str, chunk_indices) -> int:
     return len(chunk_indices)
 
 
-def _declares_digests(path: Path) -> bool:
+def declares_digests(path: Path) -> bool:
     """Whether the wood store at ``path`` was written with chunk digests (twray 0.x stores
     made before them have none, and are read as they are)."""
     try:
@@ -446,77 +443,6 @@ def _declares_digests(path: Path) -> bool:
         return attrs["twray"].get("chunk_digest") == DIGEST_SCHEME
     except (OSError, ValueError, KeyError, AttributeError, TypeError):
         return False
-
-
-def staged_path(out: Path) -> Path:
-    """A sibling path to build ``out`` in, so that a failure leaves nothing at ``out``
-    (removed by a later run if this one is interrupted, see :func:`pipeline.cache.sweep_leftovers`)."""
-    return temp_name(out, "partial")
-
-
-def written_by_twray(path: Path) -> bool:
-    """Whether ``path`` is a Zarr store twray wrote: a wood volume (attribute ``twray``) or a
-    Dataset whose ``source`` attribute names twray."""
-    path = Path(path)
-    if path.is_symlink() or not (path / "zarr.json").is_file():
-        return False
-    try:
-        attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
-    except (OSError, ValueError, AttributeError):
-        return False
-    return isinstance(attrs, dict) and ("twray" in attrs or str(attrs.get("source", "")).startswith("twray "))
-
-
-def check_replaceable(out: Path, overwrite: bool) -> None:
-    """Refuse an existing ``out`` unless ``overwrite`` is given and it is a store twray wrote.
-
-    ``--overwrite`` replaces twray's own output, never another folder or file.
-    """
-    out = Path(out)
-    if out.exists() or out.is_symlink():
-        if not overwrite:
-            raise ParameterError(f"`out` must not exist already (use --overwrite), got {str(out)!r}")
-        # (a store another run is replacing this moment may be missing for an instant)
-        if not any(written_by_twray(out) or not (out.exists() or out.is_symlink()) for _ in range(3)):
-            raise ParameterError(f"`out` exists and is not a store twray wrote: --overwrite replaces only "
-                                 f"those, got {str(out)!r}")
-
-
-def publish(staged: Path, out: Path, overwrite: bool) -> None:
-    """Move a finished store into place (a rename on one filesystem).
-
-    An existing ``out`` (only a store twray wrote, with ``overwrite``) is first renamed
-    aside, so that ``out`` holds at every moment either the old store or the new one.
-    Runs publishing to one ``out`` at once each succeed; the last one's store stays.
-    """
-    check_replaceable(out, overwrite)
-    taken = (errno.ENOTEMPTY, errno.EEXIST)  # ``out`` is there: another run's or the old store
-    for _ in range(PUBLISH_TRIES):
-        try:
-            os.rename(staged, out)
-            return
-        except OSError as exc:
-            if exc.errno not in taken:
-                raise
-        if not overwrite:
-            check_replaceable(out, overwrite)  # another run wrote it meanwhile: refused
-        old = temp_name(out, "old")
-        try:
-            os.rename(out, old)
-        except FileNotFoundError:
-            continue  # another run moved it aside first
-        try:
-            os.rename(staged, out)
-        except OSError as exc:
-            if exc.errno in taken:
-                shutil.rmtree(old, ignore_errors=True)  # another run's store came in between:
-                continue  # replace it in turn
-            with contextlib.suppress(OSError):
-                os.rename(old, out)
-            raise
-        shutil.rmtree(old, ignore_errors=True)
-        return
-    raise OSError(f"could not publish {out}: other runs kept replacing it")
 
 
 def describe(path: str | Path) -> str:

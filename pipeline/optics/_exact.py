@@ -1,4 +1,4 @@
-"""Numba kernels of the exact references (SPEC.md §8): lattices of circular tubes and
+"""Numba kernels of the exact references (docs/methods.md#exact-references): lattices of circular tubes and
 polygonal honeycombs, extruded along L, traced with exact ray-circle and
 ray-line intersections.
 
@@ -23,17 +23,15 @@ import math
 import numpy as np
 from numba import njit
 
-from ..microstructure._rng import normal, uniform
+from .. import rng
+from ..rng import normal, uniform
+from .interface import REFLECTED, TRANSMITTED, TRAPPED, refract
 
 TUBES = 0
 CELLS = 1
-SITE_KIND = 50  # random-stream kind of the site jitter
-NOISE_KIND = 51  # random-stream kind of the normal perturbations
+SITE_KIND = rng.LATTICE_SITE
+NOISE_KIND = rng.NORMAL_NOISE
 REACH = 3  # lattice indices searched on each side of a point
-# Ray status (as the voxel tracer's).
-TRANSMITTED = 1
-REFLECTED = 2
-TRAPPED = 4
 HIT_EPS = 1e-9  # [µm] a crossing this close to the last one is the same one
 
 
@@ -98,28 +96,6 @@ def phase_grid(geo, kind, seed, xs, ys, out):
     for a in range(xs.size):
         for b in range(ys.size):
             out[a, b] = phase_at(geo, kind, seed, xs[a], ys[b])
-
-
-@njit(inline="always", cache=True, nogil=True)
-def _refract(d, nx, ny, n1, n2, out):
-    """Snell or total reflection for a unit normal (nx, ny, 0) facing the ray; True if reflected."""
-    if n1 == n2:
-        for q in range(3):
-            out[q] = d[q]
-        return False
-    cos_i = -(nx * d[0] + ny * d[1])
-    eta = n1 / n2
-    sin2_t = eta * eta * (1.0 - cos_i * cos_i)
-    if sin2_t >= 1.0:
-        out[0] = d[0] + 2.0 * cos_i * nx
-        out[1] = d[1] + 2.0 * cos_i * ny
-        out[2] = d[2]
-        return True
-    f = eta * cos_i - math.sqrt(1.0 - sin2_t)
-    out[0] = eta * d[0] + f * nx
-    out[1] = eta * d[1] + f * ny
-    out[2] = eta * d[2]
-    return False
 
 
 @njit(cache=True, nogil=True)
@@ -286,12 +262,12 @@ def _next_cell_crossing(geo, seed, px, py, dx, dy, medium, t_end, tab):
 
 @njit(cache=True, nogil=True)
 def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg_len, noise,
-          out_dir, out_pos, status, events, medium_out, normals_out):
+          out_dir, out_pos, status, events, path_out, medium_out, normals_out):
     """Trace rays (pos (N, 3) [µm] on T = 0, unit dirs (N, 3) with dirs[:, 1] > 0) through the
     lattice between T = 0 and T = thickness, exactly.
 
     Writes the final direction and point, the status (TRANSMITTED, REFLECTED,
-    TRAPPED) and the number of interfaces met.  ``seg_len`` [µm]: the
+    TRAPPED), the number of interfaces met and the path length [µm].  ``seg_len`` [µm]: the
     search for the next crossing looks one segment of this length ahead
     (about a pitch).  ``normals_out`` (N, 2): the normal of the first
     interface each ray meets (for tests).  ``noise`` [radian] > 0 turns each
@@ -301,6 +277,7 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
     """
     d = np.empty(3)
     nd = np.empty(3)
+    nrm = np.zeros(3)
     tab = np.empty((11, 11, 2))
     for r in range(pos.shape[0]):
         px = pos[r, 0]
@@ -311,6 +288,7 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
         med = phase_at(geo, kind, seed, px, py)
         ev = 0
         st = 0
+        path = 0.0
         li = np.int64(-(1 << 40))
         lj = np.int64(0)
         lc = -1
@@ -343,6 +321,7 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
                 px += t_end * dx
                 py += t_end * dy
                 pz += t_end * d[2]
+                path += t_end
                 if t_end == t_face:
                     st = TRANSMITTED if dy > 0.0 else REFLECTED
                     py = thickness if dy > 0.0 else 0.0
@@ -350,6 +329,7 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
             px += t * dx
             py += t * dy
             pz += t * d[2]
+            path += t
             # Orient the normal against the ray, then Snell or total reflection.
             if nx * dx + ny * dy > 0.0:
                 nx = -nx
@@ -364,7 +344,9 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
             if ev == 0:
                 normals_out[r, 0] = nx
                 normals_out[r, 1] = ny
-            reflected = _refract(d, nx, ny, n1, n2, nd)
+            nrm[0] = nx
+            nrm[1] = ny
+            reflected = refract(d, nrm, n1, n2, nd)
             s = math.sqrt(nd[0] * nd[0] + nd[1] * nd[1] + nd[2] * nd[2])
             for q in range(3):
                 d[q] = nd[q] / s
@@ -379,6 +361,7 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
                 px += HIT_EPS * d[0]
                 py += HIT_EPS * d[1]
                 pz += HIT_EPS * d[2]
+                path += HIT_EPS
         for q in range(3):
             out_dir[r, q] = d[q]
         out_pos[r, 0] = px
@@ -386,4 +369,5 @@ def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg
         out_pos[r, 2] = pz
         status[r] = st
         events[r] = ev
+        path_out[r] = path
         medium_out[r] = med

@@ -1,4 +1,4 @@
-"""Where the tracer's voxels come from: user volumes and lazily generated wood.
+"""Voxel media: where the voxel tracer's voxels come from, user volumes and lazily generated wood.
 
 A source hands out the voxels of a chunk on request (the last chunks of a
 finite volume are smaller; the tracer reads voxels beyond it as OUTSIDE);
@@ -19,7 +19,7 @@ import numpy as np
 from ..microstructure.model import generate_block
 from ..microstructure.store import ByteLRU
 from ..params import Grid, ParameterError, WoodParams
-from . import _kernels as K
+from ._packing import mask_segments, pack_chunks, read_box
 
 
 class ArraySource:
@@ -31,18 +31,23 @@ class ArraySource:
         Anything sliceable to numpy (``numpy.ndarray``, ``zarr.Array``).
     chunks : tuple of 3 int
         Chunk shape the tracer pages in.
+    voxel_um : float
+        Side of a voxel [µm] (what the tracer interface converts µm by).
     """
 
     unbounded = (False, False)
     token = None  # its voxels may change under it: never in the packed-chunk memo
 
-    def __init__(self, array, *, chunks=(64, 64, 64)):
+    def __init__(self, array, *, chunks=(64, 64, 64), voxel_um: float = 1.0):
+        if not (math.isfinite(voxel_um) and voxel_um > 0):
+            raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel_um!r}")
         if getattr(array, "ndim", None) != 3:
             raise ParameterError(f"`volume` must be a 3-D array (R, T, L), got shape {np.shape(array)}")
         if min(array.shape) < 1:
             raise ParameterError(f"`volume` must hold at least one voxel along R, T and L, got shape "
                                  f"{tuple(array.shape)}")
         self.array = array
+        self.voxel_um = float(voxel_um)
         self.shape = tuple(int(s) for s in array.shape)
         self.chunks = tuple(int(min(c, s)) for c, s in zip(chunks, self.shape))
 
@@ -84,6 +89,7 @@ class WoodSource:
         self.params = params
         self.seed = int(seed)
         self.grid = Grid((0, nT, 0), float(voxel_um), (0.0, 0.0, 0.0))
+        self.voxel_um = float(voxel_um)
         self.shape = (0, nT, 0)  # 0: unbounded
         self.store = store
         self.chunks = tuple(int(c) for c in (store.chunks if store is not None else chunks))
@@ -147,7 +153,8 @@ def load_volume(path: str | Path):
     if path.is_dir() and (path / "zarr.json").exists():
         import zarr
 
-        from ..microstructure.volume import WoodVolume, written_by_twray
+        from ..microstructure.volume import WoodVolume
+        from ..publish import written_by_twray
 
         if written_by_twray(path) and "twray" in zarr.open_group(path, mode="r").attrs:
             return WoodVolume.open(path)  # a lazy volume's chunks are generated as they are read
@@ -245,9 +252,9 @@ class ChunkCache:
         self.outside: set[tuple] = set()
         self.last_use: dict[tuple, int] = {}
         self.tick = 0
-        # One bit per voxel (K.pack_chunks): 1/8 of the chunks' bytes; pages on use.
+        # One bit per voxel (pack_chunks): 1/8 of the chunks' bytes; pages on use.
         # Per slot, R index and L segment, the all-wall and all-polymer rows as
-        # bits along T (K.pack_chunks).
+        # bits along T (pack_chunks).
         self.bits, self.masks = self._buffers(max(1, int(capacity)))
         self.capacity = self.bits.shape[0]
         self.free = list(range(self.capacity))[::-1]
@@ -281,7 +288,7 @@ class ChunkCache:
     @property
     def _masks_shape(self) -> tuple:
         cR, cT, cL = self.source.chunks
-        return (cR, K.mask_segments(cL), 2, -(-cT // 64))
+        return (cR, mask_segments(cL), 2, -(-cT // 64))
 
     @property
     def chunk_shape(self) -> np.ndarray:
@@ -353,7 +360,7 @@ class ChunkCache:
         for run in runs:
             slots = [self.free.pop() for _ in run]
             voxels = np.asarray(chunks.pop(run[0]) if chunks is not None else self.source.get_run(run[0], len(run)))
-            if not K.pack_chunks(voxels, self.bits, self.masks, slots, self.source.chunks[2]):
+            if not pack_chunks(voxels, self.bits, self.masks, slots, self.source.chunks[2]):
                 bad = voxels[(voxels != 0) & (voxels != 1)]
                 got = f"values up to {bad.max()}" if bad.max() > 1 else f"the value {bad.min()}"
                 raise ParameterError(f"`volume` must hold 0 (polymer) and 1 (wall) only, got {got}")
@@ -376,6 +383,6 @@ class ChunkCache:
                 for j in idx[1][[0, -1]] for k in idx[2][[0, -1]]}
         self.require(need)
         out = np.empty(shape, np.uint8)
-        K.read_box(self.bits, self.table, self.box, self.chunk_shape, np.asarray(self.source.shape, np.int64),
+        read_box(self.bits, self.table, self.box, self.chunk_shape, np.asarray(self.source.shape, np.int64),
                    *idx, out)
         return out

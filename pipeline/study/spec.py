@@ -29,13 +29,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ..analysis import Target
-from ..optics.tracer import PRESETS, TraceSettings, settings_for, traced_voxel_um
-from ..params import (ParameterError, WOOD_FIELDS, WoodParams, coerce_field, load_preset,
+from ..optics.settings import (Optics, TraceSettings, check_method, settings_for, traced_voxel_um,
+                               wall_index)
+from ..params import (ParameterError, WOOD_FIELDS, WoodParams, check_voxel, coerce_field, load_preset,
                       read_yaml_file, validate, yaml_locator)
 
 # What each scale does to the paper-scale numbers of a study file.
@@ -76,7 +78,12 @@ class Scene:
 
     @property
     def n_wall(self) -> float:
-        return self.ri_polymer + self.delta_ri
+        return wall_index(self.ri_polymer, self.delta_ri)
+
+    @property
+    def optics(self) -> Optics:
+        """The optics this scene is traced with (the Fresnel streams keyed by its seed)."""
+        return Optics.of_delta(self.ri_polymer, self.delta_ri, seed=self.seed)
 
     @property
     def trace_voxel_um(self) -> float:
@@ -203,20 +210,18 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         if k not in _TRACE:
             fail(("trace", k), f"unknown key `trace.{k}` (known: {', '.join(sorted(_TRACE))})")
     if method is not None:
-        if method not in PRESETS:
-            raise ParameterError(f"`method` must be one of {', '.join(PRESETS)}, got method={method!r}")
+        check_method(method, kind="voxels")
     else:
         method = trace.get("method", "accurate")
-    if method not in PRESETS:
-        fail(("trace", "method"), f"`trace.method` must be one of {', '.join(PRESETS)}, got {method!r}")
+        try:
+            check_method(method, "trace.method", kind="voxels")
+        except ParameterError as exc:
+            fail(("trace", "method"), str(exc))
     if "fresnel" in trace and not isinstance(trace["fresnel"], bool):
         fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {trace['fresnel']!r}")
     changes = {}
     if "refine" in trace:
-        refine = trace["refine"]
-        if isinstance(refine, bool) or not isinstance(refine, int) or not 1 <= refine <= 8:
-            fail(("trace", "refine"), f"`trace.refine` must be an integer in [1, 8], got {refine!r}")
-        changes["refine"] = refine
+        changes["refine"] = trace["refine"]
     if "step_vox" in trace:
         step = trace["step_vox"]
         if isinstance(step, bool) or not isinstance(step, (int, float)) or not math.isfinite(step):
@@ -226,7 +231,9 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         settings = settings_for(method, exit=trace.get("exit", "internal"),
                                 fresnel=bool(trace.get("fresnel", False)), **changes)
     except ParameterError as exc:
-        raise ParameterError(where("trace") + "`trace." + str(exc).lstrip("`")) from None
+        field = re.match(r"`(\w+)`", str(exc))
+        key = ("trace", field.group(1)) if field and field.group(1) in trace else ("trace",)
+        raise ParameterError(where(*key) + "`trace." + str(exc).lstrip("`")) from None
 
     vary = data["vary"]
     if not isinstance(vary, dict) or set(vary) != {"parameter", "values"}:
@@ -275,20 +282,21 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         except ParameterError as exc:
             raise ParameterError(where("wood") + f"value {v!r}: {exc}") from None
         n_poly = scene_vars["ri_polymer"]
-        n_wall = n_poly + scene_vars["delta_ri"]
-        if not 1.0 <= n_wall <= 3.0 or not abs(scene_vars["delta_ri"]) < 0.5:
-            fail(("vary",), f"`delta_ri` must give a wall index in [1, 3], got polymer {n_poly:g} "
-                            f"and wall {n_wall:g}")
-        if voxel_um > params.wall_thickness_um / 2:
-            fail(("voxel_um",), f"`voxel_um` must be <= wall_thickness_um/2 = "
-                                f"{params.wall_thickness_um / 2:g} µm, got voxel_um={voxel_um:g}")
-        step_um = settings.step_vox * traced_voxel_um(voxel_um, settings)
+        try:
+            Optics.of_delta(n_poly, scene_vars["delta_ri"]).validate()
+        except ParameterError as exc:
+            fail(("vary",), str(exc))
+        try:
+            check_voxel(voxel_um, params)
+        except ParameterError as exc:
+            fail(("voxel_um",), str(exc))
+        step_um = settings.voxel.step_vox * traced_voxel_um(voxel_um, settings)
         if settings.method == "paper" and step_um >= params.wall_thickness_um:
             # A step as wide as the wall jumps over walls (SPEC.md §4: the paper's step is half a wall).
             fail(("trace", "step_vox"), f"`trace.step_vox` must be smaller than the wall "
                                         f"({params.wall_thickness_um:g} µm = "
                                         f"{params.wall_thickness_um / traced_voxel_um(voxel_um, settings):g} "
-                                        f"voxels), got step_vox={settings.step_vox:g}")
+                                        f"voxels), got step_vox={settings.voxel.step_vox:g}")
         if thickness_um < voxel_um:
             fail(("thickness_mm",), f"`thickness_mm` must be at least one voxel at scale {scale}, "
                                     f"got {thickness_um:g} µm")
@@ -346,6 +354,6 @@ def scene_record(scene: Scene) -> dict:
     """Canonical, JSON-ready description of a scene (for cache keys and provenance)."""
     out = dataclasses.asdict(scene)
     out["wood"] = scene.wood.to_dict()
-    out["settings"] = dataclasses.asdict(scene.settings)
+    out["settings"] = scene.settings.to_dict()
     out["value"] = scene.value if not isinstance(scene.value, tuple) else list(scene.value)
     return out

@@ -1,8 +1,11 @@
 """Counter-based random numbers: every value is a hash of (seed, kind, ids).
 
-No sequential stream exists anywhere in the generator, so any entity (a node,
-a fibre, a vessel tile, a ray column) draws its random values alone, in any
-order, on any worker.
+No sequential stream exists anywhere in twray, so any entity (a node, a
+fibre, a vessel tile, a ray, an aperture sample) draws its random values
+alone, in any order, on any worker (docs/methods.md#random-streams).
+
+The kinds below are the one registry of streams: two quantities that must be
+independent never share a kind.
 """
 
 import math
@@ -19,7 +22,8 @@ _S31 = np.uint64(31)
 _S11 = np.uint64(11)
 _INV53 = 1.0 / 9007199254740992.0
 
-# Entity kinds: one per independent random quantity.
+# Stream kinds: one per independent random quantity, for the whole package.
+# The microstructure generator:
 NODE_R = 1
 NODE_T = 2
 NODE_WALL = 3
@@ -37,6 +41,19 @@ RAY_CELL_PHASE = 14
 GLOBAL_BEND = 15
 PLY = 16
 FIBRE_TIP = 17
+# The tracer:
+FRESNEL = 40  # partial reflection at an interface, per (ray, event)
+BEAM = 41  # entry point of a beam's ray, per ray
+# The exact reference lattices:
+LATTICE_SITE = 50  # jitter of a lattice site, per (i, j)
+NORMAL_NOISE = 51  # perturbation of a normal, per (ray, event)
+# The virtual camera:
+APERTURE = 61  # aperture samples of a pixel
+
+
+def kinds() -> dict[str, int]:
+    """Every stream kind by name (the registry above)."""
+    return {k: v for k, v in globals().items() if k.isupper() and not k.startswith("_") and isinstance(v, int)}
 
 
 @njit(inline="always", cache=True, error_model="numpy")

@@ -1,0 +1,78 @@
+"""The ``twray`` command line.
+
+Every bad input ends with one line on stderr naming the field, the value and
+the rule, exit code 2, and nothing written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+from .. import __version__
+from ..cache import log_to_stderr
+from ..params import ParameterError
+from .args import EXIT_INTERRUPTED, EXIT_USAGE, Parser, YES_HELP, subparser
+from .graphs import add_camera, add_study
+from .outputs import add_cache, add_figures
+from .trace import add_trace
+from .volumes import add_generate, cmd_export_tiff, cmd_info, cmd_slices
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="twray", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"twray {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
+    add_generate(sub)
+    add_trace(sub)
+    add_study(sub)
+    add_camera(sub)
+    add_cache(sub)
+    add_figures(sub)
+    p = subparser(sub, "slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
+    p.add_argument("volume", help="a twray volume (.zarr)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=cmd_slices)
+    p = subparser(sub, "export-tiff", help="one TIFF per L slice, for ImageJ/Avizo")
+    p.add_argument("volume", help="a twray volume (.zarr)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--yes", action="store_true", help=YES_HELP)
+    p.set_defaults(func=cmd_export_tiff)
+    p = subparser(sub, "info", help="print a volume's shape, parameters and generated chunks")
+    p.add_argument("volume", help="a twray volume (.zarr)")
+    p.set_defaults(func=cmd_info)
+    return parser
+
+
+def _terminated(signum, frame):
+    raise KeyboardInterrupt  # a kill (SIGTERM) cleans up like Ctrl-C: staged outputs are removed
+
+
+def main(argv: list[str] | None = None) -> int:
+    log_to_stderr()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminated)
+    try:
+        args = build_parser().parse_args(argv)
+        return args.func(args)
+    except ParameterError as exc:
+        print(f"twray: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("twray: interrupted; nothing half-written is left (studies and the camera resume from their "
+              "cache)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except OSError as exc:  # the filesystem refused (disk full, permissions): one line, not a traceback
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        print(f"twray: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

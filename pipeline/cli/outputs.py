@@ -1,0 +1,157 @@
+"""``twray cache``, ``figures`` and ``report``: what the runs left, checked, drawn and written up."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from .. import limits
+from ..params import ParameterError
+from .args import out_path, subparser
+
+
+def add_cache(sub):
+    p = subparser(
+        sub, "cache", help="list, verify or clean the cache of studies and the camera",
+        description="Every cache entry (wood chunk store, ray shard, summary, camera image) is named by "
+                    "the key of what produced it and carries a digest of its content. `ls` lists them with "
+                    "their size and provenance, `verify` checks every one (exit 1 if any is damaged; a "
+                    "study recomputes damaged entries by itself), `gc` removes what the given study and "
+                    "camera files do not use, and what interrupted runs left.")
+    p.add_argument("action", choices=("ls", "verify", "gc"), help="ls, verify or gc")
+    p.add_argument("files", nargs="*", metavar="FILE.yaml",
+                   help="gc: the study and camera files whose entries are kept (default: every .yaml under "
+                        "studies/)")
+    p.add_argument("--cache", default="results/cache", help="cache directory (default results/cache)")
+    p.add_argument("--scale", action="append", default=None,
+                   help="gc: scale whose entries are kept, repeatable (default: paper and small)")
+    p.add_argument("--dry-run", action="store_true", help="gc: list what would be removed, remove nothing")
+    p.add_argument("--remove", action="store_true", help="verify: also remove the damaged entries")
+    p.add_argument("--json", action="store_true", help="ls: one JSON object per line")
+    p.set_defaults(func=cmd_cache)
+
+
+def cmd_cache(args) -> int:
+    import json
+
+    from .. import inventory
+
+    cache = Path(args.cache)
+    if args.action != "gc" and (args.files or args.scale or args.dry_run):
+        raise ParameterError(f"`{args.action}` takes no study files, --scale or --dry-run (those are gc's)")
+    if not cache.is_dir():
+        raise ParameterError(f"`cache` must be an existing folder, got cache={str(cache)!r}")
+    entries = inventory.scan(cache)
+    if args.action == "ls":
+        for e in entries:
+            if args.json:
+                print(json.dumps({"stage": e.stage, "key": e.key, "bytes": e.size, "path": str(e.path),
+                                  "about": e.about}))
+            else:
+                print(f"{e.stage:8s} {e.key or '-':24s} {limits.size(e.size):>9s}  {e.about or e.path.name}")
+        total = sum(e.size for e in entries)
+        print(f"{len(entries)} entries, {limits.size(total)} in {cache}", file=sys.stderr)
+        return 0
+    if args.action == "verify":
+        damaged = 0
+        for e in entries:
+            for path, why in inventory.verify(e):
+                print(f"{path}: {why}")
+                damaged += 1
+                if args.remove:
+                    inventory.remove(path)
+        print(f"{len(entries)} entries verified, {damaged} damaged"
+              f"{' (removed)' if args.remove and damaged else ''}", file=sys.stderr)
+        return 1 if damaged else 0
+    files = args.files or sorted(str(f) for f in Path("studies").rglob("*.yaml"))
+    if not files:
+        raise ParameterError("`files` must name the study and camera files whose entries to keep "
+                             "(no studies/ folder here)")
+    scales = args.scale or ["paper", "small"]
+    keep = inventory.keys_in_use(files, scales, cache)
+    # Only twray's own entries are removed: anything else found there is named and left.
+    for e in entries:
+        if e.stage == "unknown":
+            print(f"left alone {e.path} (not a twray cache entry)")
+    drop = [e for e in entries if e.stage == "leftover" or (e.stage in inventory.STAGES and e.key not in keep)]
+    for e in drop:
+        print(f"{'would remove' if args.dry_run else 'removed'} {e.path} ({limits.size(e.size)})")
+        if not args.dry_run:
+            inventory.remove(e.path)
+    kept = len(entries) - len(drop)
+    print(f"{len(drop)} entries ({limits.size(sum(e.size for e in drop))}) "
+          f"{'to remove' if args.dry_run else 'removed'}, {kept} kept", file=sys.stderr)
+    return 0
+
+
+FIGURE_KINDS = ("microstructure", "trajectories", "studies", "histograms", "camera")
+
+
+def add_figures(sub):
+    p = subparser(sub, "figures", help="draw the paper's figures from the result datasets")
+    p.add_argument("--results", default="results/paper",
+                   help="the scale's results folder holding study-*.zarr and camera/ (default results/paper)")
+    p.add_argument("--out", default="results/figures", help="where the PNGs go (default results/figures)")
+    p.add_argument("--only", default=None, help=f"comma-separated subset of {','.join(FIGURE_KINDS)}")
+    p.set_defaults(func=cmd_figures)
+    p = subparser(sub, "report", help="write the reproduction report from the result datasets")
+    p.add_argument("--results", default="results", help="the results folder (default results)")
+    p.add_argument("--scale", default="paper", help="whose datasets: results/<scale>/ (default paper)")
+    p.add_argument("--out", default="results/REPORT.md", help="the report (default results/REPORT.md)")
+    p.set_defaults(func=cmd_report)
+
+
+def _need(path: Path, field: str, value: str, command: str) -> None:
+    if not path.exists():
+        raise ParameterError(f"`{field}` must hold {path.name} (run `{command}` first), got {field}={value!r}")
+
+
+def cmd_figures(args) -> int:
+    from ..figures import TABLE1, make_figures
+
+    which = None
+    if args.only is not None:
+        which = {w.strip() for w in args.only.split(",") if w.strip()}
+        bad = sorted(which - set(FIGURE_KINDS))
+        if bad or not which:
+            raise ParameterError(f"`only` must name some of {', '.join(FIGURE_KINDS)}, got only={args.only!r}")
+    results = Path(args.results)
+    kinds = which or set(FIGURE_KINDS)
+    if kinds & {"studies", "histograms"}:
+        for name in (TABLE1 if "studies" in kinds else ("study-1",)):
+            _need(results / f"{name}.zarr", "results", args.results, "make table1")
+    if "camera" in kinds:
+        _need(results / "camera" / "figure5.zarr", "results", args.results, "make camera")
+    out = out_path(args.out, "out")
+    t0 = time.perf_counter()
+    made = make_figures(results, out, which=which)
+    print(f"{len(made)} figures in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from ..cache import atomic_write
+    from ..report import TABLE1, build_report, figure_links
+
+    results = Path(args.results)
+    base = results / args.scale
+    for name in TABLE1:
+        _need(base / f"{name}.zarr", "results", args.results, f"make table1 SCALE={args.scale}")
+    _need(base / "camera" / "figure5.zarr", "results", args.results, f"make camera SCALE={args.scale}")
+    for name in ("birch-0.7mm", "birch-0.7mm-air", "balsa-1mm", "balsa-1mm-air"):
+        _need(base / "experiment" / f"{name}.zarr", "results", args.results, f"make experiment SCALE={args.scale}")
+    for name in TABLE1:
+        _need(base / "paper-method" / f"{name}.zarr", "results", args.results,
+              f"make table1-paper-method SCALE={args.scale}")
+    _need(results / "tradeoff.zarr", "results", args.results, "make tradeoff")
+    _need(results / "bench.json", "results", args.results, "make bench")
+    out = out_path(args.out, "out")
+    text = build_report(results, scale_dir=args.scale)
+    atomic_write(out, lambda tmp: tmp.write_text(text))
+    missing = [f for f in figure_links(text) if not (out.parent / f).exists()]
+    print(f"wrote {out}")
+    if missing:
+        print(f"twray report: {len(missing)} linked figures do not exist yet (run `make figures`): "
+              f"{', '.join(missing)}", file=sys.stderr)
+    return 0

@@ -1,0 +1,153 @@
+"""``twray trace``: parse, run one :class:`~pipeline.trace_job.TraceJob`, print."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .. import limits
+from ..progress import mode as progress_mode
+from ..params import ParameterError, build_params, parse_set
+from .args import YES_HELP, integer, number, out_path, subparser
+
+
+def add_trace(sub):
+    p = subparser(sub, "trace", help="trace a beam through a volume and report FWHM_R, FWHM_L, haze")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--volume", help="user volume: .npy, .zarr or a folder of TIFF slices "
+                                      "(axes R, T, L; 1 = wall)")
+    src.add_argument("--preset", help="generate wood lazily from this species preset")
+    p.add_argument("--config", help="YAML file of wood parameters (with --preset)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one wood parameter (with --preset), e.g. --set wall_thickness_um=4 [µm]")
+    p.add_argument("--thickness-mm", help="sample thickness along T [mm] (with --preset)")
+    p.add_argument("--voxel-um", default="0.5", help="voxel size [µm]")
+    p.add_argument("--delta-ri", required=True, help="RI of the wall minus RI of the polymer")
+    p.add_argument("--ri-polymer", default="1.49", help="RI of the polymer (default 1.49)")
+    p.add_argument("--rays", default="1000", help="number of rays in the beam (default 1000)")
+    p.add_argument("--beam-um", default="150", help="side of the square beam footprint [µm]")
+    p.add_argument("--beam-origin-um", default=None, help="beam centre R,L on the entrance face [µm]")
+    p.add_argument("--incidence-deg", default=None,
+                   help="beam direction in air as angles R,L [degree] of its projections on the R-T and "
+                        "L-T planes from +T (default 0,0: perpendicular to the L-R face); the beam "
+                        "refracts into the sample, and haze is measured from this direction")
+    p.add_argument("--method", default="accurate", help="paper, fast or accurate")
+    p.add_argument("--exit", default="internal", help="angles inside the sample (internal) or in air")
+    p.add_argument("--fresnel", action="store_true", help="partial Fresnel reflection")
+    p.add_argument("--step-vox", default=None, help="paper marching step [voxels] (default 2)")
+    p.add_argument("--refine", default=None,
+                   help="trace generated wood on voxels this many times smaller than --voxel-um "
+                        "(default: the method's, 2 for accurate, 1 otherwise; a --volume is traced "
+                        "on its own voxels)")
+    p.add_argument("--seed", default="1", help="non-negative integer seed of the wood and the beam (default 1)")
+    p.add_argument("--target-ci", default=None, metavar="HAZE",
+                   help="trace until the 95 %% CI half-width of haze is at most HAZE (a fraction, e.g. 0.01): "
+                        "--rays is the first batch, doubled up to --max-rays")
+    p.add_argument("--target-ci-fwhm", default=None, metavar="DEG",
+                   help="with or without --target-ci: also until the CI half-widths of FWHM_R and FWHM_L are at most DEG")
+    p.add_argument("--max-rays", default="64000", help="most rays a --target-ci trace uses (default 64000)")
+    p.add_argument("--out", default=None, help="per-ray dataset (.nc or .zarr)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--yes", action="store_true", help=YES_HELP)
+    p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
+    p.set_defaults(func=cmd_trace)
+
+
+def cmd_trace(args) -> int:
+    from ..optics.settings import Optics, settings_for
+    from ..trace_job import TraceJob, check_rays_out, job_inputs, medium_of, run, strict_json, write_rays
+
+    voxel = number(args.voxel_um, "voxel_um")
+    if not voxel > 0:
+        raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel:g}")
+    if args.out is not None:
+        args.out = str(out_path(args.out))
+        check_rays_out(Path(args.out))
+    optics = Optics.of_delta(number(args.ri_polymer, "ri_polymer"), number(args.delta_ri, "delta_ri"),
+                             seed=integer(args.seed, "seed", 0),
+                             n_outside=1.0 if args.incidence_deg is not None else None).validate()
+    rays = integer(args.rays, "rays", 1)
+    target = _trace_target(args, rays)
+    beam_um = number(args.beam_um, "beam_um")
+    if not beam_um > 0:
+        raise ParameterError(f"`beam_um` must be > 0 µm, got beam_um={beam_um:g}")
+    changes = {"exit": args.exit}
+    if args.step_vox is not None:
+        changes["step_vox"] = number(args.step_vox, "step_vox")
+    if args.fresnel:
+        changes["fresnel"] = True
+    if args.refine is not None:
+        changes["refine"] = integer(args.refine, "refine", 1)
+    elif args.volume:
+        changes["refine"] = 1  # a user volume is traced on its own voxels
+    settings = settings_for(args.method, **changes)
+    wood = thickness_um = None
+    if args.volume:
+        if args.thickness_mm or args.overrides or args.config:
+            raise ParameterError("`--thickness-mm`, `--set` and `--config` apply to --preset, not --volume")
+    else:
+        if args.thickness_mm is None:
+            raise ParameterError("`--thickness-mm` is required with --preset")
+        thickness_um = number(args.thickness_mm, "thickness_mm") * 1000.0
+        if not thickness_um > 0:
+            raise ParameterError(f"`thickness_mm` must be > 0, got thickness_mm={thickness_um / 1000:g}")
+        wood = build_params(args.preset, args.config, parse_set(args.overrides))
+    origin = None
+    if args.beam_origin_um is not None:
+        parts = args.beam_origin_um.split(",")
+        if len(parts) != 2:
+            raise ParameterError(f"`beam_origin_um` must be R,L [µm], got {args.beam_origin_um!r}")
+        origin = tuple(number(v, "beam_origin_um") for v in parts)
+    job = TraceJob(settings=settings, optics=optics, rays=rays, beam_um=beam_um, voxel_um=voxel,
+                   seed=optics.seed, volume=args.volume, wood=wood, thickness_um=thickness_um,
+                   beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target)
+    medium, centre, est = medium_of(job)
+    limits.check(est, what=f"`trace` of {rays if target is None else target.max_rays} rays", yes=args.yes,
+                 fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
+                     "or a thinner sample")
+    result, summary = run(job, medium, centre, progress=progress_mode(args.quiet))
+    if args.out:
+        write_rays(result, summary, args.out, job_inputs(job, centre))
+    if args.json:
+        print(strict_json(summary))
+    else:
+        lo, hi = summary["haze_ci"]
+        met = "" if target is None else (
+            "; target_ci met" if summary["target_ci_met"] else f"; target_ci NOT met at max_rays {target.max_rays}")
+        print(f"{summary['n_transmitted']}/{summary['n_rays']} transmitted "
+              f"(method {summary['method']}, exit {summary['exit']}): "
+              f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}°, "
+              f"haze {100 * summary['haze']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}], "
+              f"{summary['seconds']:.1f} s{met}")
+    return 0
+
+
+def _trace_target(args, rays: int):
+    """The precision ``--target-ci``/``--target-ci-fwhm`` ask for (None: trace ``--rays``)."""
+    from ..analysis import Target
+
+    if args.target_ci is None and args.target_ci_fwhm is None:
+        return None
+    haze = fwhm = None
+    if args.target_ci is not None:
+        haze = number(args.target_ci, "target_ci")
+        if not 0 < haze <= 0.5:
+            raise ParameterError(f"`target_ci` must be a haze half-width in (0, 0.5], got target_ci={haze:g}")
+    if args.target_ci_fwhm is not None:
+        fwhm = number(args.target_ci_fwhm, "target_ci_fwhm")
+        if not fwhm > 0:
+            raise ParameterError(f"`target_ci_fwhm` must be > 0 degree, got target_ci_fwhm={fwhm:g}")
+    cap = integer(args.max_rays, "max_rays", rays)
+    return Target(haze=haze, fwhm_deg=fwhm, max_rays=cap)
+
+
+def _incidence(text: str | None) -> tuple[float, float]:
+    """The beam's angles (R, L) in air from --incidence-deg [degree]."""
+    if text is None:
+        return (0.0, 0.0)
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise ParameterError(f"`incidence_deg` must be two angles R,L [degree], got {text!r}")
+    angles = tuple(number(a, "incidence_deg") for a in parts)
+    if not all(abs(a) < 90.0 for a in angles):
+        raise ParameterError(f"`incidence_deg` angles must lie in (-90, 90) degrees, got {text!r}")
+    return angles

@@ -1,0 +1,158 @@
+"""A study's xarray Dataset, built from its cache entries and published atomically."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..publish import is_current, publish_dataset
+from .plan import N_BOOT, Plan, ray_sampling, read_entry
+from .spec import scene_record
+from .tasks import load_rays
+
+
+def study_dataset(plan: Plan):
+    """The study's xarray Dataset from its cached entries.
+
+    Dimensions: the varied parameter, ``realisation`` (the wood drawn with seed
+    ``seed + realisation``) and ``ray``.  FWHM_R, FWHM_L and haze are the
+    realisations pooled, with intervals that include the wood-to-wood variation
+    (``*_ci_lower``/``*_ci_upper``) and of the ray sampling alone
+    (``*_ray_ci_*``); ``*_per_realisation`` are each realisation's own.
+    """
+    import xarray as xr
+
+    from ..optics.interface import STATUS_NAMES
+
+    st = plan.study
+    dim = st.dimension
+    R = st.realisations
+    pooled, each, rays = [], [], []
+    for pool in plan.pools:
+        pooled.append(read_entry(pool))
+        mine = plan.summaries_of(pool)
+        each.append([read_entry(s) for s in mine])
+        rays.append([load_rays(plan.shards_of(s), st.realisation(pool.scene_index, s.realisation))[0]
+                     for s in mine])
+    codes = sorted(STATUS_NAMES)
+    hier = "hierarchical bootstrap (realisations, then rays) 95 % interval"
+    per_value = {  # name: (value of a pooled summary, long_name, units)
+        "FWHM_R": (lambda s: s["fwhm_r_deg"], "FWHM of the Lorentz fit to theta_R, realisations pooled", "degree"),
+        "FWHM_L": (lambda s: s["fwhm_l_deg"], "FWHM of the Lorentz fit to theta_L, realisations pooled", "degree"),
+        "haze": (lambda s: s["haze"], "fraction of transmitted rays deviating more than 2.5 degree, "
+                                      "realisations pooled", "1"),
+        "FWHM_R_ci_lower": (lambda s: s["fwhm_r_ci_deg"][0], f"{hier} of FWHM_R, lower", "degree"),
+        "FWHM_R_ci_upper": (lambda s: s["fwhm_r_ci_deg"][1], f"{hier} of FWHM_R, upper", "degree"),
+        "FWHM_L_ci_lower": (lambda s: s["fwhm_l_ci_deg"][0], f"{hier} of FWHM_L, lower", "degree"),
+        "FWHM_L_ci_upper": (lambda s: s["fwhm_l_ci_deg"][1], f"{hier} of FWHM_L, upper", "degree"),
+        "haze_ci_lower": (lambda s: s["haze_ci"][0], f"{hier} of haze, lower", "1"),
+        "haze_ci_upper": (lambda s: s["haze_ci"][1], f"{hier} of haze, upper", "1"),
+        "FWHM_R_ray_ci_lower": (lambda s: s["fwhm_r_ray_ci_deg"][0],
+                                "bootstrap 95 % interval of FWHM_R over rays alone, lower", "degree"),
+        "FWHM_R_ray_ci_upper": (lambda s: s["fwhm_r_ray_ci_deg"][1],
+                                "bootstrap 95 % interval of FWHM_R over rays alone, upper", "degree"),
+        "FWHM_L_ray_ci_lower": (lambda s: s["fwhm_l_ray_ci_deg"][0],
+                                "bootstrap 95 % interval of FWHM_L over rays alone, lower", "degree"),
+        "FWHM_L_ray_ci_upper": (lambda s: s["fwhm_l_ray_ci_deg"][1],
+                                "bootstrap 95 % interval of FWHM_L over rays alone, upper", "degree"),
+        "haze_ray_ci_lower": (lambda s: s["haze_ray_ci"][0], "Wilson 95 % interval of haze over rays alone, lower", "1"),
+        "haze_ray_ci_upper": (lambda s: s["haze_ray_ci"][1], "Wilson 95 % interval of haze over rays alone, upper", "1"),
+        "n_transmitted": (lambda s: s["n_transmitted"], "rays leaving through the far L-R face, all realisations", "1"),
+        "n_lost": (lambda s: s["n_lost"], "rays not transmitted (reflected, side, trapped), all realisations", "1"),
+        "interfaces_per_ray": (lambda s: s["interfaces_per_ray"], "mean interfaces met per ray, all realisations", "1"),
+    }
+    per_realisation = {  # name: (value of a realisation's summary, long_name, units)
+        "FWHM_R_per_realisation": (lambda s: s["fwhm_r_deg"], "FWHM_R of each realisation", "degree"),
+        "FWHM_L_per_realisation": (lambda s: s["fwhm_l_deg"], "FWHM_L of each realisation", "degree"),
+        "haze_per_realisation": (lambda s: s["haze"], "haze of each realisation", "1"),
+        "interfaces_per_ray_per_realisation": (lambda s: s["interfaces_per_ray"],
+                                               "mean interfaces met per ray in each realisation", "1"),
+        "n_transmitted_per_realisation": (lambda s: s["n_transmitted"],
+                                          "rays transmitted in each realisation", "1"),
+    }
+    per_ray = {  # name: (values of a RayResult, attributes)
+        "theta_r": (lambda r: r.theta_r, {"long_name": "exit angle in the R-T plane from +T", "units": "degree"}),
+        "theta_l": (lambda r: r.theta_l, {"long_name": "exit angle in the L-T plane from +T", "units": "degree"}),
+        "n_interfaces": (lambda r: r.events.astype("int32"), {"long_name": "interfaces met by the ray", "units": "1"}),
+        "status": (lambda r: r.status.astype("int32"), {
+            "long_name": "ray status", "flag_values": codes,
+            "flag_meanings": " ".join(STATUS_NAMES[c] for c in codes)}),
+    }
+    data = {name: (dim, np.array([get(s) for s in pooled]), {"long_name": ln, "units": u})
+            for name, (get, ln, u) in per_value.items()}
+    data.update({name: ((dim, "realisation"), np.array([[get(s) for s in row] for row in each]),
+                        {"long_name": ln, "units": u})
+                 for name, (get, ln, u) in per_realisation.items()})
+    data.update({name: ((dim, "realisation", "ray"), np.array([[get(r) for r in row] for row in rays]), attrs)
+                 for name, (get, attrs) in per_ray.items()})
+    coord = st.coordinate()
+    if any(isinstance(c, str) for c in coord):
+        coord = np.array(coord, dtype=object)  # variable-length strings (laminate notation)
+    n_rays = len(rays[0][0].status)
+    seed = st.scenes[0].seed
+    ds = xr.Dataset(
+        data,
+        coords={
+            dim: (dim, coord, {"long_name": st.long_name, **({"units": st.units} if st.units else {})}),
+            "realisation": ("realisation", np.arange(R), {
+                "long_name": "wood realisation: the wood and beam of seed `seed` + realisation"}),
+            "seed_of_realisation": ("realisation", seed + np.arange(R), {"long_name": "seed of the realisation"}),
+            "ray": ("ray", np.arange(n_rays), {"long_name": "ray index in the beam"}),
+        },
+        attrs={
+            "Conventions": "CF-1.10",
+            "title": st.title,
+            "source": f"twray {__version__}",
+            "study": st.name,
+            "study_yaml": st.text,
+            "scale": st.scale,
+            "seed": seed,
+            "realisations": R,
+            "trace_settings": json.dumps(st.scenes[0].settings.to_dict()),
+            "exit_angles": st.scenes[0].settings.exit,
+            "cache_keys": json.dumps(plan.keys()),
+            "scenes": json.dumps([scene_record(s) for s in st.scenes]),
+        },
+    )
+    from ..analysis import HAZE_ANGLE_DEG
+    from ..provenance import link_intervals, provenance_attrs
+
+    ds.attrs.update(provenance_attrs({"study": st.name, "scale": st.scale, "realisations": R,
+                                      "scenes": [scene_record(s) for s in st.scenes]},
+                                     st.scenes[0].settings.method))
+    link_intervals(ds, 0.95, N_BOOT)
+    for bound in ("haze_ray_ci_lower", "haze_ray_ci_upper") + (
+            ("haze_ci_lower", "haze_ci_upper") if R == 1 else ()):
+        ds[bound].attrs.pop("bootstrap_resamples", None)
+        ds[bound].attrs["interval"] = "Wilson score (binomial)"
+    ds["haze"].attrs["threshold_deg"] = HAZE_ANGLE_DEG
+    target = st.scenes[0].target
+    ds.attrs["rays"] = n_rays
+    if target is not None:
+        ds.attrs["target_ci"] = json.dumps(target.to_dict())
+        ds.attrs["target_ci_met"] = int(all(target.met(ray_sampling(s)) for s in pooled))
+    return ds
+
+
+def _provenance(plan: Plan) -> dict:
+    return {"study_yaml": plan.study.text, "scale": plan.study.scale,
+            "cache_keys": json.dumps(plan.keys()), "source": f"twray {__version__}"}
+
+
+def _provenance(plan: Plan) -> dict:
+    return {"study_yaml": plan.study.text, "scale": plan.study.scale,
+            "cache_keys": json.dumps(plan.keys()), "source": f"twray {__version__}"}
+
+
+def dataset_is_current(plan: Plan, out: Path) -> bool:
+    """Whether ``out`` was built from exactly this study and these cache entries, undamaged."""
+    return is_current(out, _provenance(plan))
+
+
+def write_dataset(plan: Plan, results_dir) -> Path:
+    """Publish ``results/<study>.zarr``; one built from the same study and cache entries is kept."""
+    return publish_dataset(lambda: study_dataset(plan), Path(results_dir) / f"{plan.study.name}.zarr",
+                           _provenance(plan))

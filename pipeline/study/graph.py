@@ -1,0 +1,100 @@
+"""A study's missing stages as one Dask graph, and running it on a ``distributed`` client."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .plan import Micro, Plan
+from .tasks import generate_chunks, pool_value, summarize_scene, trace_shard
+
+COLUMN_BATCH = 16  # chunks per microstructure task
+
+
+@dataclass
+class Graph:
+    """The Dask tasks computing the missing stages of some plans."""
+
+    micro: list  # delayed chunk counts
+    summaries: list  # delayed {"pool": ..., "chunks_generated": ...}, one per value
+    n_trace: int
+    n_summaries: int = 0
+
+
+def build_graph(plans: list[Plan]) -> Graph:
+    """Dask delayed objects computing every missing stage of ``plans``."""
+    import dask
+
+    # Task arguments enter the graph once each, by name, and untraversed: dask would
+    # otherwise walk every dataclass field of every argument of every task.
+    def constant(obj, name):
+        return dask.delayed(obj, name=name, traverse=False)
+
+    # Studies that share a wood (say study 1 and study 2) share its chunk tasks.
+    todo: dict[str, set] = {}
+    woods: dict[str, Micro] = {}
+    for plan in plans:
+        for m in plan.micros.values():
+            todo.setdefault(m.key, set()).update(m.todo)
+            woods.setdefault(m.key, m)
+    micro_tasks: dict[str, list] = {}
+    micro_args: dict[str, object] = {}
+    for key, m in woods.items():
+        chunks = sorted(todo[key])
+        micro_args[key] = arg = constant(m.slim(), f"wood-{key[:12]}")
+        micro_tasks[key] = [
+            dask.delayed(generate_chunks, pure=False)(
+                arg, chunks[i:i + COLUMN_BATCH], dask_key_name=f"micro-{key[:12]}-{i // COLUMN_BATCH}")
+            for i in range(0, len(chunks), COLUMN_BATCH)]
+    summaries = []
+    pools = []
+    n_trace = 0
+    for plan in plans:
+        done = {}
+        for summ in plan.summaries:
+            if summ.cached:
+                continue
+            scene = constant(plan.study.realisation(summ.scene_index, summ.realisation), f"scene-{summ.key[:12]}")
+            traced = []
+            for shard in plan.shards_of(summ):
+                if not shard.cached:
+                    n_trace += 1
+                    wood = shard.micro
+                    traced.append(dask.delayed(trace_shard, pure=False)(
+                        micro_args.get(wood), scene, constant(shard, f"shard-{shard.key[:12]}"),
+                        *micro_tasks.get(wood, ()), dask_key_name=f"rays-{shard.key[:12]}"))
+            shards = constant(plan.shards_of(summ), f"shards-{summ.key[:12]}")
+            done[summ.key] = dask.delayed(summarize_scene, pure=False)(
+                scene, constant(summ, f"summ-{summ.key[:12]}"), shards, *traced,
+                dask_key_name=f"summary-{summ.key[:12]}")
+            summaries.append(done[summ.key])
+        for pool in plan.pools:
+            if pool.cached:
+                continue
+            mine = plan.summaries_of(pool)
+            shards = constant([plan.shards_of(s) for s in mine], f"pool-shards-{pool.key[:12]}")
+            pools.append(dask.delayed(pool_value, pure=False)(
+                constant(plan.study.realisation(pool.scene_index, 0), f"scene0-{pool.key[:12]}"), constant(pool, f"poolarg-{pool.key[:12]}"), shards,
+                *[done[s.key] for s in mine if s.key in done], dask_key_name=f"pool-{pool.key[:12]}"))
+    micro = [t for ts in micro_tasks.values() for t in ts]
+    return Graph(micro, pools, n_trace, len(summaries))
+
+
+def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
+    """Run the missing stages of ``plans`` on a ``distributed.Client`` (``progress``: "bar",
+    "lines" or "off", see :mod:`pipeline.progress`).
+
+    Returns counts of what ran: tasks per stage and wood chunks generated.
+    """
+    graph = build_graph(plans)
+    report = {"micro_tasks": len(graph.micro), "trace_tasks": graph.n_trace,
+              "summary_tasks": graph.n_summaries, "pool_tasks": len(graph.summaries), "chunks_generated": 0}
+    if not graph.micro and not graph.summaries:
+        return report
+    from ..progress import follow, graph_keys
+
+    futures = client.compute(graph.micro + graph.summaries)
+    follow(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress)
+    results = client.gather(futures)
+    n = len(graph.micro)
+    report["chunks_generated"] = int(sum(results[:n]) + sum(r["chunks_generated"] for r in results[n:]))
+    return report

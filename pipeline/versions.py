@@ -1,0 +1,30 @@
+"""Code versions that cache keys and provenance record: the bottom floor of the package.
+
+A version changes when the numbers a piece of code produces for the same
+inputs change, so that cached entries made by the old code are computed
+again.  Each tracing method has its own: a change to one method leaves the
+others' cached rays valid.
+"""
+
+from __future__ import annotations
+
+# The cached stages of a study (docs/guide.md#cache).
+#   micro 3: wood without ray cells keeps the vessels and fibre distortion of the same wood with
+#            them (ray columns are a property of the lattice); wood with ray cells holds the same voxels.
+#   rays 4: positions and path lengths stored in µm (the tracer interface's units), not voxels.
+#   summary 3: haze CI.  pool 1: wood realisations pooled.
+STAGES = {"micro": "3", "rays": "4", "summary": "3", "pool": "1"}
+
+# The generator's version: the voxels of every wood (pinned by tests/test_microstructure.py).
+GENERATOR = STAGES["micro"]
+
+# One per tracing method: bump a method's when its rays change for the same inputs.
+TRACERS = {"paper": "7", "fast": "7", "accurate": "7", "exact": "1"}
+
+# Cached camera images (2: entries verified, key and digest).
+CAMERA = "2"
+
+
+def tracer(method: str) -> str:
+    """The version of tracing method ``method``."""
+    return TRACERS[method]

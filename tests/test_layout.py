@@ -1,0 +1,115 @@
+"""The package's structure: lower floors never import higher ones, no import cycles, no private
+name used across packages, files of one concept (the rules of docs/architecture.md)."""
+
+import ast
+import pathlib
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent / "pipeline"
+
+# Floors, bottom first: a module imports only its own floor and those below.
+FLOORS = [
+    {"pipeline", "pipeline.versions", "pipeline.params", "pipeline.rng", "pipeline._intrinsics", "pipeline.cache",
+     "pipeline.progress", "pipeline.analysis", "pipeline.provenance", "pipeline.publish"},
+    {"pipeline.microstructure"},
+    {"pipeline.optics"},
+    {"pipeline.limits", "pipeline.study", "pipeline.camera"},
+    {"pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.inventory", "pipeline.trace_job",
+     "pipeline.cluster"},
+    {"pipeline.cli", "pipeline.__main__"},
+]
+MAX_LINES = 650  # one concept a file: about 600 lines at most
+
+
+def _modules() -> dict[str, pathlib.Path]:
+    out = {}
+    for f in ROOT.rglob("*.py"):
+        parts = f.relative_to(ROOT.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = f
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: pathlib.Path):
+    """(imported module, imported name or None) of every import in ``name``, inside functions too."""
+    is_package = path.name == "__init__.py"
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = name.split(".") if is_package else name.split(".")[:-1]
+                base = base[:len(base) - node.level + 1]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            for alias in node.names:
+                full = f"{mod}.{alias.name}"
+                yield (full, None) if full in MODULES else (mod, alias.name)
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, None
+
+
+EDGES = {m: {t for t, _ in _imports(m, p) if t in MODULES and t != m} for m, p in MODULES.items()}
+
+
+def _floor(module: str) -> int:
+    for level, names in enumerate(FLOORS):
+        if module in names or any(module.startswith(n + ".") for n in names if n != "pipeline"):
+            return level
+    raise AssertionError(f"{module} is on no floor: add it to FLOORS")
+
+
+def test_every_module_has_a_floor_and_imports_nothing_above_it():
+    upward = [f"{m} (floor {_floor(m)}) imports {t} (floor {_floor(t)})"
+              for m, targets in EDGES.items() for t in targets if _floor(t) > _floor(m)]
+    assert not upward, "\n".join(upward)
+
+
+def test_no_import_cycle():
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for t in sorted(EDGES[m]):
+            if state.get(t) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(t):] + [t]))
+            if t not in state:
+                visit(t)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(MODULES):
+        if m not in state:
+            visit(m)
+
+
+def test_no_private_name_is_imported_across_packages():
+    def package(m):
+        return m.split(".")[:2]
+
+    crossing = [f"{m} imports {t}.{n}" for m, p in MODULES.items() for t, n in _imports(m, p)
+                if t in MODULES and package(t) != package(m)
+                and (n or t.rsplit(".", 1)[-1]).startswith("_") and not (n or "").startswith("__")
+                and not t.rsplit(".", 1)[-1].startswith("__")]
+    assert not crossing, "\n".join(crossing)
+
+
+@pytest.mark.parametrize("path", sorted(ROOT.rglob("*.py")), ids=lambda p: str(p.relative_to(ROOT.parent)))
+def test_files_hold_one_concept_and_cite_only_the_repository(path):
+    text = path.read_text()
+    assert text.count("\n") <= MAX_LINES, f"{path} has {text.count(chr(10))} lines: split it by concept"
+    for outside in ("SPEC.md", "GENERATOR.md", "DESIGN.md"):
+        assert outside not in text, f"{path} cites {outside}, which is not in this repository: cite docs/"
+
+
+def test_the_layout_check_sees_the_package():
+    # A check that finds no modules or no edges would pass vacuously.
+    assert {"pipeline.optics.trace", "pipeline.study.plan", "pipeline.cli"} <= set(MODULES)
+    assert "pipeline.versions" in EDGES["pipeline.provenance"]
+    assert sum(len(t) for t in EDGES.values()) > 150
