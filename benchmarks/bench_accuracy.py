@@ -1,4 +1,4 @@
-"""Every tracing method against exact optics of many thin walls (SPEC.md §8).
+"""Every tracing method against exact optics of many thin walls (docs/methods.md#accuracy-against-exact-optics).
 
 Writes results/accuracy.json and results/accuracy.md:
 - table: fast and accurate (4000 rays) and paper (500 rays, wall 4 voxels)

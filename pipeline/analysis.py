@@ -1,4 +1,4 @@
-"""Reductions of traced rays: Lorentz (Cauchy) widths and haze (SPEC.md §4)."""
+"""Reductions of traced rays: Lorentz (Cauchy) widths and haze (docs/methods.md#fwhm-and-haze)."""
 
 from __future__ import annotations
 

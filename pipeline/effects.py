@@ -25,7 +25,7 @@ from .params import WoodParams
 TABLE1 = ("study-1", "study-2", "study-3", "study-4", "study-5-1", "study-5-2", "study-6")
 
 # The value of each study that the others are compared with: the Table 1 default scene
-# (SPEC.md §6) where the study contains it, else its first value.
+# (docs/methods.md#table-1) where the study contains it, else its first value.
 REFERENCE = {"thickness": 1.0, "delta_ri": 0.01}
 
 N_BOOT = 200

@@ -27,7 +27,7 @@ class ParameterError(ValueError):
 
 @dataclass(frozen=True)
 class WoodParams:
-    """Parameters of the hardwood microstructure model (GENERATOR.md).
+    """Parameters of the hardwood microstructure model (docs/methods.md#parameter-reference).
 
     Lengths are in micrometres.  Cross-section lengths of the model scale
     with ``fibre_diameter_um``; lengths along the grain stay physical.
@@ -46,13 +46,13 @@ class WoodParams:
     end_plates: bool = True
     # Overlapping tapered fibre tips: consecutive fibres of a file meet along an oblique wall
     # that crosses the lumen over 2·fibre_tip_um along L, instead of a flat end plate.
-    # 0: flat end plates (GENERATOR.md §2).
+    # 0: flat end plates (docs/methods.md#fibre-ends).
     fibre_tip_um: float = 0.0
     vessels: bool = True
     vessel_cluster_probability: float = 0.9  # proposal probability per vessel tile
     vessel_pair_fraction: float = 0.3
     vessel_triple_fraction: float = 0.15
-    vessel_wall_um: float | None = None  # None: 5/3 (wall/2 + 0.5 µm·s), GENERATOR.md §3
+    vessel_wall_um: float | None = None  # None: 5/3 (wall/2 + 0.5 µm·s), docs/methods.md#vessels
     ray_cells: bool = True
     ray_spacing_nodes: float = 20.0  # mean T spacing of ray columns [lattice nodes]
     ray_jitter_nodes: float = 5.0
@@ -78,7 +78,7 @@ class WoodParams:
 
     @property
     def scale(self) -> float:
-        """Cross-section scale s = cell_r / 14.5 voxels (GENERATOR.md)."""
+        """Cross-section scale s = cell_r / 14.5 voxels (docs/methods.md#scaling-with-the-fibre-diameter)."""
         return self.node_pitch_um / 7.25
 
     def vessel_wall(self) -> float:

@@ -274,7 +274,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add("## The microstructures")
     add("")
-    add("Every structure of Table 1, generated from its parameters (GENERATOR.md): sections through a "
+    add("Every structure of Table 1, generated from its parameters (docs/methods.md#the-microstructure-model): sections through a "
         "300 × 500 × 600 µm block (R × T × L) and a 3D view of it (the paper's Figure 3).")
     add("")
     for slug, caption, _, _ in table1_structures(list(tables.values())):
@@ -333,7 +333,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         add("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     add("")
     add("The published study's own Table 1 values are not part of this repository's specification "
-        "(SPEC.md gives the studies, not their results), so the comparison above is with what "
+        "(docs/methods.md#table-1 gives the studies, not their results), so the comparison above is with what "
         "geometrical optics predicts, not with the paper's numbers.")
     add("")
     add("## The paper's method beside `accurate`")
@@ -364,7 +364,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add("## Fibre tips and scattering along L")
     add("")
-    add("In the generator of GENERATOR.md a fibre is straight along L and ends in a flat plate, so its walls are "
+    add("In the generator (docs/methods.md#fibre-ends) a fibre is straight along L and ends in a flat plate, so its walls are "
         "almost parallel to L (docs/methods.md, \"Fibre tips\", measures their normals) and FWHM_L comes mostly from "
         "the ray cells. Birch fibres end in long tapering tips that overlap their neighbours'. With "
         "`fibre_tip_um` = λ, consecutive fibres of a file overlap over 2λ and meet along an oblique wall inclined "
@@ -377,7 +377,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     tip_text = fibre_tip_sentence(tips)
     add(tip_text[0].upper() + tip_text[1:] + " Table 1 keeps flat fibre ends "
-        "(λ = 0, GENERATOR.md), so its woods and numbers are the ones above at λ = 0.")
+        "(λ = 0, docs/methods.md#fibre-tips), so its woods and numbers are the ones above at λ = 0.")
     add("")
     add("## The virtual camera (Figure 5)")
     add("")
@@ -439,7 +439,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         "wood (the model is a function of position).")
     add("- **Statistics.** Every number carries a 95 % interval over woods and rays; the trends above are "
         "paired differences with their own intervals. The paper reports single values.")
-    add(f"- **Wood.** The microstructure model follows GENERATOR.md; every value is {n_real} realisations "
+    add(f"- **Wood.** The microstructure model follows docs/methods.md#the-microstructure-model; every value is {n_real} realisations "
         "of it, pooled. Switching ray cells or vessels off leaves every other structure where it was "
         "(tests/test_microstructure.py), so studies 5-1 and 5-2 change one factor each.")
     fine = fine_voxel_sentence(fine_voxel_rows(results, n_boot=n_boot))

@@ -1,4 +1,4 @@
-"""Virtual camera (SPEC.md §7): thin-lens optics, sheets, objects, cached rendering on a LocalCluster."""
+"""Virtual camera (docs/methods.md#virtual-camera): thin-lens optics, sheets, objects, cached rendering on a LocalCluster."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""The tracer against exact optics (SPEC.md §8)."""
+"""The tracer against exact optics (docs/methods.md#cross-checks)."""
 
 import math
 
@@ -194,8 +194,14 @@ def test_a_cache_reuses_the_last_traces_buffers_but_none_of_its_voxels():
     probe = ChunkCache(ArraySource(vol2, chunks=(16, 32, 64)), capacity=8)
     assert probe.bits is bits
     probe.release()
+    assert sources._SPARE[-1][0] is bits
+    pool = len(sources._SPARE)
     again = trace_beam(ArraySource(vol2, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
-    assert not sources._SPARE or sources._SPARE[-1][0] is bits  # taken, and given back
+    # Taken by the trace's cache and given back after it: had the trace made buffers of its own,
+    # they would now be the newest spare (and the pool one longer, or ``bits`` dropped from it).
+    assert len(sources._SPARE) == pool
+    assert sources._SPARE[-1][0] is bits
+    assert sum(b is bits for b, _ in sources._SPARE) == 1
     assert np.array_equal(again.exit_direction, fresh.exit_direction)
     assert np.array_equal(again.events, fresh.events)
 

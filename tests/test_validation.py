@@ -1,4 +1,4 @@
-"""The exact references themselves (SPEC.md §8): lattices of tubes and honeycombs, traced exactly."""
+"""The exact references themselves (docs/methods.md#exact-references): lattices of tubes and honeycombs, traced exactly."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""A thin-lens camera looking at a flat object through a TW sheet (SPEC.md §7).
+"""A thin-lens camera looking at a flat object through a TW sheet (docs/methods.md#virtual-camera).
 
 Geometry (millimetres; z along the optical axis, which is the wood's T):
 

@@ -1,4 +1,4 @@
-"""Render the images of a camera file as a cached Dask graph (SPEC.md §7).
+"""Render the images of a camera file as a cached Dask graph (docs/methods.md#virtual-camera).
 
 Each image is split into blocks of sensor rows, one task each; the tasks of
 all images run on one ``distributed.Client``.  The sheet's wood comes from

@@ -1,4 +1,4 @@
-"""Camera YAML → validated image configurations (SPEC.md §7).
+"""Camera YAML → validated image configurations (docs/methods.md#virtual-camera).
 
 A camera file declares the sheet, the camera and the trace settings shared
 by its images, and the images themselves::

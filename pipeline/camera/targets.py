@@ -1,4 +1,4 @@
-"""Flat objects the virtual camera looks at (SPEC.md §7).
+"""Flat objects the virtual camera looks at (docs/methods.md#virtual-camera).
 
 A :class:`Target` is a grey-level raster (1 = light, 0 = dark) of a given
 physical size, centred on the optical axis in the object plane; beyond its

@@ -23,7 +23,7 @@ def _sig(x):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _add_dipole(out, gR, gT, R0, T0_, k1, k2, k3, k4, sign, rv, acut, bcut):
-    """Add one dipole (GENERATOR.md §5) to the tile grid ``out``.
+    """Add one dipole (docs/methods.md#distortion) to the tile grid ``out``.
 
     d(a, b) = [σ(k1 a) − σ(k2 a)]·(k4/k2)·exp(−b²/(2 (k3/k2)²)), in reference
     voxels; u uses (a, b) = (R, T), v uses (T, R).  Separable, so the grid

@@ -595,7 +595,7 @@ def surface_normal(bits, masks, table, box, cs, shape, xf, d, sigma, radius, new
         # axis across the sheet, along which S's Hessian at xf curves most:
         # the same on both faces of a flat sheet, wherever the ray crosses
         # them (so a thin flat wall leaves a ray parallel to itself), and
-        # radial in a thin tube (its deflection: SPEC.md §8).  Taking that
+        # radial in a thin tube (its deflection: docs/methods.md#exact-references).  Taking that
         # axis also where only the model along the ray misses 1/2 (grazing
         # rays) moved birch's FWHM_R at ΔRI < 0 away from its value at half
         # the voxel size (by 10-16 %), so it is not.

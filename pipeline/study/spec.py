@@ -275,7 +275,7 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         seen.add(marker)
         thickness_um = scene_vars["thickness_mm"] * 1000.0 * f["thickness"]
         if w.get("laminate") and "ply_thickness_um" not in overrides:
-            # Equal plies through the thickness (SPEC.md §2).
+            # Equal plies through the thickness (docs/methods.md#laminates).
             w["ply_thickness_um"] = thickness_um / len(w["laminate"])
         try:
             params = validate(WoodParams(**w))
@@ -292,7 +292,7 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
             fail(("voxel_um",), str(exc))
         step_um = settings.voxel.step_vox * traced_voxel_um(voxel_um, settings)
         if settings.method == "paper" and step_um >= params.wall_thickness_um:
-            # A step as wide as the wall jumps over walls (SPEC.md §4: the paper's step is half a wall).
+            # A step as wide as the wall jumps over walls (docs/methods.md#voxel-methods: the paper's step is half a wall).
             fail(("trace", "step_vox"), f"`trace.step_vox` must be smaller than the wall "
                                         f"({params.wall_thickness_um:g} µm = "
                                         f"{params.wall_thickness_um / traced_voxel_um(voxel_um, settings):g} "

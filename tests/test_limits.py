@@ -1,0 +1,206 @@
+"""Cost estimates checked before any work starts (pipeline/limits.py): what a trace or study needs,
+in CPU, memory and disk; a refusal in one line that says what to do; readable sizes and times;
+the CPU threshold from TWRAY_CONFIRM_CPU_HOURS."""
+
+import dataclasses
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipeline import limits
+from pipeline.analysis import Target
+from pipeline.limits import (CONFIRM_ENV, Estimate, camera_estimate, check, confirm_hours, free_disk, hours,
+                             machine_memory, size, study_estimate, trace_estimate, wood_voxels)
+from pipeline.optics.settings import settings_for
+from pipeline.params import ParameterError, build_params
+from pipeline.study.spec import Scene
+
+BIRCH = build_params("birch")  # fibre pitch 14.5 µm
+FIT = "use fewer rays or a thinner sample"
+
+
+@pytest.fixture(autouse=True)
+def default_threshold(monkeypatch):
+    monkeypatch.delenv(CONFIRM_ENV, raising=False)
+
+
+# ------------------------------------------------------------------ words
+@pytest.mark.parametrize("n, text", [(0, "0 B"), (999, "999 B"), (1000, "1 kB"), (1536, "1.54 kB"),
+                                     (2 ** 30, "1.07 GB"), (5e12, "5 TB"), (5e15, "5 PB"), (2e18, "2e+03 PB")])
+def test_sizes_are_decimal_units_to_three_figures(n, text):
+    assert size(n) == text
+
+
+@pytest.mark.parametrize("cpu_s, text", [(0, "0 CPU-s"), (119.4, "119 CPU-s"), (120, "2 CPU-min"),
+                                         (7199, "120 CPU-min"), (7200, "2 CPU-h"), (3600 * 1234.5, "1.23e+03 CPU-h")])
+def test_cpu_times_are_seconds_minutes_or_hours(cpu_s, text):
+    assert hours(cpu_s) == text
+
+
+def test_estimates_add_time_and_disk_and_keep_the_larger_memory():
+    """Steps run one after the other: their times and disks add, the peak memory is the larger."""
+    total = Estimate(30.0, 2e9, 1e6) + Estimate(90.0, 5e8, 4e6)
+    assert (total.cpu_s, total.memory, total.disk) == (120.0, 2e9, 5e6)
+    assert total.text() == "~2 CPU-min of CPU, 2 GB of memory, 5 MB of disk"
+    assert Estimate(90, 2 ** 30, 0).text() == "~90 CPU-s of CPU, 1.07 GB of memory, 0 B of disk"
+
+
+def test_machine_memory_is_the_physical_memory_the_kernel_reports():
+    with open("/proc/meminfo") as f:
+        total_kb = next(int(line.split()[1]) for line in f if line.startswith("MemTotal:"))
+    assert machine_memory() == pytest.approx(total_kb * 1024, rel=0.01)
+
+
+def test_free_disk_of_a_path_not_made_yet_is_that_of_its_nearest_folder(tmp_path):
+    deep = tmp_path / "not" / "made" / "yet.zarr"
+    assert free_disk(deep) == pytest.approx(shutil.disk_usage(tmp_path).free, rel=0.01)
+    assert not (tmp_path / "not").exists()
+
+
+# ------------------------------------------------------------------ the threshold
+@pytest.mark.parametrize("text, value", [(None, 2.0), ("0.5", 0.5), ("0", 0.0), ("24", 24.0)])
+def test_the_cpu_threshold_is_two_hours_unless_the_environment_says(monkeypatch, text, value):
+    if text is not None:
+        monkeypatch.setenv(CONFIRM_ENV, text)
+    assert confirm_hours() == value
+
+
+@pytest.mark.parametrize("text", ["lots", "-1", "nan", "inf", ""])
+def test_a_threshold_that_is_not_a_number_of_hours_is_refused_by_name(monkeypatch, text):
+    monkeypatch.setenv(CONFIRM_ENV, text)
+    with pytest.raises(ParameterError) as err:
+        confirm_hours()
+    assert str(err.value) == f"`TWRAY_CONFIRM_CPU_HOURS` must be a number of CPU-hours >= 0, got {text!r}"
+
+
+# ------------------------------------------------------------------ check
+def _refusal(est, **kw) -> str:
+    with pytest.raises(ParameterError) as err:
+        check(est, what="`trace`", fit=FIT, **kw)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(f"`trace` needs {est.text()}") and msg.endswith(f"; {FIT}")
+    return msg
+
+
+def test_more_cpu_than_the_threshold_needs_yes(monkeypatch):
+    check(Estimate(cpu_s=7200.0), what="`trace`", yes=False)  # exactly 2 CPU-hours: runs
+    msg = _refusal(Estimate(cpu_s=7201.0), yes=False)
+    assert "above TWRAY_CONFIRM_CPU_HOURS=2 CPU-hours: add --yes (with make: YES=1) to run it" in msg
+    check(Estimate(cpu_s=1e9), what="`trace`", yes=True)  # asked for: a month runs
+    monkeypatch.setenv(CONFIRM_ENV, "0.5")
+    check(Estimate(cpu_s=1800.0), what="`trace`", yes=False)
+    assert "above TWRAY_CONFIRM_CPU_HOURS=0.5 CPU-hours" in _refusal(Estimate(cpu_s=1801.0), yes=False)
+    monkeypatch.setenv(CONFIRM_ENV, "0")
+    check(Estimate(cpu_s=0.0), what="`trace`", yes=False)
+    assert "add --yes" in _refusal(Estimate(cpu_s=1.0), yes=False)
+
+
+def test_what_cannot_fit_the_memory_is_refused_even_with_yes():
+    ram = machine_memory()
+    check(Estimate(memory=0.8 * ram), what="`trace`", yes=True)
+    msg = _refusal(Estimate(cpu_s=1e9, memory=0.81 * ram), yes=True)
+    assert f"more memory than this machine's {size(ram)}" in msg
+    assert "--yes" not in msg  # memory first: --yes would not help
+
+
+def test_what_cannot_fit_the_free_disk_is_refused_where_it_would_be_written(tmp_path):
+    free = free_disk(tmp_path)
+    check(Estimate(disk=free / 2), what="`trace`", yes=True, disk_path=tmp_path)
+    check(Estimate(disk=10 * free), what="`trace`", yes=True)  # no disk to write: not checked
+    target = tmp_path / "cache"
+    msg = _refusal(Estimate(disk=10 * free), yes=True, disk_path=target)
+    assert "more disk than the " in msg and f" free under {target}" in msg
+    assert not target.exists()
+
+
+# ------------------------------------------------------------------ estimates
+def test_the_wood_a_beam_generates_is_whole_chunks_around_it_twice_over():
+    # 40 µm beam on 0.5 µm voxels: 80 + 16 voxels across -> 2 chunks of 64; 100 µm deep -> 200 -> 4 chunks.
+    assert wood_voxels(40.0, 100.0, 0.5) == 2 * 128 * 128 * 256
+    assert wood_voxels(40.0, 100.0, 0.25) == 2 * 192 * 192 * 448  # 176 across -> 3 chunks, 400 deep -> 7
+    assert wood_voxels(1.0, 1.0, 0.5) == 2 * 64 * 64 * 64  # never less than a chunk
+
+
+def test_a_trace_costs_its_interfaces_at_the_methods_rate_and_the_wood_it_generates():
+    # 1000 rays through 145 µm of 14.5 µm fibres: 3 interfaces a pitch, 30 000 interfaces.
+    rates = limits.INTERFACE_CPU_S
+    kw = {"rays": 1000, "beam_um": 40.0, "thickness_um": 145.0, "voxel_um": 0.5, "pitch_um": 14.5}
+    for method in ("accurate", "fast", "paper"):
+        bare = trace_estimate(method=method, wood=False, **kw)
+        assert bare.cpu_s == pytest.approx(30_000 * rates[method])
+        assert bare.memory == limits.BASE_MEMORY + 1000 * limits.RAY_BYTES and bare.disk == 0
+    assert trace_estimate(method="new", wood=False, **kw) == trace_estimate(method="accurate", wood=False, **kw)
+    voxels = wood_voxels(40.0, 145.0, 0.5)
+    held = trace_estimate(method="fast", **kw)
+    assert held.cpu_s == pytest.approx(30_000 * rates["fast"] + voxels / limits.GENERATE_VOXELS_PER_CPU_S)
+    assert held.memory == pytest.approx(limits.BASE_MEMORY + 1000 * limits.RAY_BYTES
+                                        + voxels * limits.MEMORY_BYTES_PER_WOOD_VOXEL) and held.disk == 0
+    stored = trace_estimate(method="fast", store=True, **kw)  # the wood on disk, not in memory
+    assert stored.cpu_s == held.cpu_s and stored.memory == limits.BASE_MEMORY + 1000 * limits.RAY_BYTES
+    assert stored.disk == pytest.approx(voxels * limits.DISK_BYTES_PER_VOXEL)
+    # Twice the thickness: twice the interfaces.
+    thick = trace_estimate(method="fast", wood=False, **{**kw, "thickness_um": 290.0})
+    assert thick.cpu_s == pytest.approx(2 * trace_estimate(method="fast", wood=False, **kw).cpu_s)
+
+
+def _scene(**changes) -> Scene:
+    base = Scene(value=0.01, wood=BIRCH, seed=1, voxel_um=0.5, thickness_um=100.0, ri_polymer=1.49,
+                 delta_ri=0.01, rays=1000, beam_um=40.0, settings=settings_for("fast"))
+    return dataclasses.replace(base, **changes)
+
+
+def test_a_study_generates_each_wood_once_and_traces_every_scene_by_shards():
+    one = _scene()
+    other_value = _scene(value=0.02, delta_ri=0.02)  # the same wood
+    other_seed = _scene(seed=2)
+    voxels = wood_voxels(40.0, 100.0, 0.5)
+    shard = trace_estimate(rays=500, beam_um=40.0, thickness_um=100.0, voxel_um=0.5, pitch_um=14.5,
+                           method="fast", wood=False, store=True)
+    two_values = study_estimate([one, other_value], shard_rays=500)
+    assert two_values.disk == pytest.approx(voxels * limits.DISK_BYTES_PER_VOXEL)  # one wood
+    assert two_values.cpu_s == pytest.approx(4 * shard.cpu_s + voxels / limits.GENERATE_VOXELS_PER_CPU_S)
+    # Peak memory: one value's rays read back at once, for every scene's Dataset.
+    assert two_values.memory == limits.BASE_MEMORY + 1000 * (limits.RAY_BYTES + 2 * limits.DATASET_RAY_BYTES)
+    two_woods = study_estimate([one, other_seed], shard_rays=500)
+    assert two_woods.disk == pytest.approx(2 * two_values.disk)
+    # A thicker sample of the same wood generates it deeper, not again.
+    deeper = study_estimate([one, _scene(thickness_um=300.0)], shard_rays=500)
+    assert deeper.disk == pytest.approx(wood_voxels(40.0, 300.0, 0.5) * limits.DISK_BYTES_PER_VOXEL)
+    # `accurate` generates and traces the wood on half the scene's voxel.
+    fine = study_estimate([_scene(settings=settings_for("accurate"))], shard_rays=500)
+    assert fine.disk == pytest.approx(wood_voxels(40.0, 100.0, 0.25) * limits.DISK_BYTES_PER_VOXEL)
+
+
+def test_a_study_traced_to_a_precision_is_costed_at_its_cap_of_rays():
+    capped = _scene(rays=1000, target=Target(haze=0.01, max_rays=4000))
+    assert study_estimate([capped], shard_rays=500).cpu_s == \
+        pytest.approx(study_estimate([_scene(rays=4000)], shard_rays=500).cpu_s)
+    assert study_estimate([capped], shard_rays=500).cpu_s > study_estimate([_scene()], shard_rays=500).cpu_s
+
+
+def test_a_study_too_large_for_the_machine_is_refused_before_it_starts(tmp_path):
+    """What `twray study` checks first: a beam of ten billion rays cannot fit, even with --yes."""
+    est = study_estimate([_scene(rays=10 ** 10)], shard_rays=10 ** 10)
+    assert est.memory > machine_memory()
+    with pytest.raises(ParameterError, match=r"^`study` needs ~.*more memory than this machine's .*; use fewer rays"):
+        check(est, what="`study`", yes=True, disk_path=tmp_path, fit="use fewer rays")
+
+
+def test_the_camera_generates_the_sheets_wood_once_and_traces_every_pixels_aperture_samples():
+    """Figure 5 at small scale: four 51 × 51 images of 20 samples a pixel through one 1.5 × 1 mm
+    sheet, 100 µm thick, of the same wood (0.5 µm voxels, `fast`)."""
+    from pipeline.camera.scene import load_camera
+
+    images = load_camera(Path(__file__).resolve().parents[1] / "studies" / "camera" / "figure5.yaml",
+                         scale="small").images
+    assert len(images) == 4
+    voxels = 1500 * 1000 * 100 / 0.5 ** 3
+    interfaces = 51 * 51 * 20 * 3 * 100 / 14.5  # per image
+    est = camera_estimate(images)
+    assert est.disk == pytest.approx(voxels * limits.DISK_BYTES_PER_VOXEL)  # 12 MB: one wood for all four
+    assert est.cpu_s == pytest.approx(4 * interfaces * limits.INTERFACE_CPU_S["fast"]
+                                      + voxels / limits.GENERATE_VOXELS_PER_CPU_S)
+    assert est.memory == limits.BASE_MEMORY
+    assert camera_estimate(images[:1]).disk == est.disk
+    assert camera_estimate([]) == Estimate()

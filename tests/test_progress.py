@@ -1,0 +1,139 @@
+"""Progress of long commands (pipeline/progress.py): a bar on a terminal, a line every few seconds
+to a log (and one when done), nothing with --quiet; the line says how many tasks are done, how
+fast and about how long is left."""
+
+import os
+import re
+import sys
+import time
+
+import dask
+import pytest
+
+from pipeline.progress import LocalLines, _every_s, follow, graph_keys, line, mode
+
+LINE = re.compile(r"^(\w+): (\d+)/(\d+) tasks done \([\d.e+-]+ per s\)(, about \d+ (s|min) left)?$")
+
+
+# ------------------------------------------------------------------ which display
+def test_quiet_shows_nothing_a_terminal_a_bar_and_a_pipe_lines(monkeypatch, tmp_path):
+    assert mode(True) == "off"
+    master, slave = os.openpty()
+    with open(slave, "w") as tty:
+        monkeypatch.setattr(sys, "stdout", tty)
+        assert mode(False) == "bar"
+        assert mode(True) == "off"
+    os.close(master)
+    with open(tmp_path / "log", "w") as log:
+        monkeypatch.setattr(sys, "stdout", log)
+        assert mode(False) == "lines"
+    read, write = os.pipe()
+    with open(write, "w") as pipe:
+        monkeypatch.setattr(sys, "stdout", pipe)
+        assert mode(False) == "lines"
+    os.close(read)
+
+
+@pytest.mark.parametrize("text, seconds", [(None, 10.0), ("2.5", 2.5), ("60", 60.0), ("0", 10.0), ("-3", 10.0),
+                                           ("soon", 10.0)])
+def test_the_line_period_is_ten_seconds_unless_the_environment_gives_a_positive_number(monkeypatch, text, seconds):
+    if text is None:
+        monkeypatch.delenv("TWRAY_PROGRESS_EVERY_S", raising=False)
+    else:
+        monkeypatch.setenv("TWRAY_PROGRESS_EVERY_S", text)
+    assert _every_s() == seconds
+
+
+# ------------------------------------------------------------------ the line
+def test_a_line_gives_tasks_done_the_rate_and_the_time_left_at_that_rate():
+    assert line("study", 3, 10, 6.0) == "study: 3/10 tasks done (0.5 per s), about 14 s left"
+    # 1 task in 12 s, 99 to go: 1188 s, shown in minutes from 2 minutes on.
+    assert line("study", 1, 100, 12.0) == "study: 1/100 tasks done (0.083 per s), about 20 min left"
+    assert line("study", 30, 31, 59.0) == "study: 30/31 tasks done (0.51 per s), about 2 s left"
+    assert line("trace", 1, 2, 119.0) == "trace: 1/2 tasks done (0.0084 per s), about 119 s left"
+    assert line("trace", 1, 2, 120.0) == "trace: 1/2 tasks done (0.0083 per s), about 2 min left"
+
+
+def test_a_line_with_nothing_done_yet_or_everything_done_says_no_time_left():
+    assert line("study", 0, 5, 4.0) == "study: 0/5 tasks done (0 per s)"
+    assert line("study", 5, 5, 2.0) == "study: 5/5 tasks done (2.5 per s)"
+    assert line("study", 0, 5, 0.0) == "study: 0/5 tasks done (0 per s)"
+
+
+# ------------------------------------------------------------------ local schedulers
+def _graph():
+    """Four independent tasks and their sum: five tasks."""
+    parts = [dask.delayed(lambda x: x + 1)(i) for i in range(4)]
+    return dask.delayed(sum)(parts)
+
+
+def test_graph_keys_are_every_task_of_the_collections():
+    total = _graph()
+    assert len(graph_keys([total])) == 5
+    parts = [dask.delayed(lambda x: x)(i, dask_key_name=f"part-{i}") for i in range(3)]
+    assert sorted(graph_keys(parts)) == ["part-0", "part-1", "part-2"]
+
+
+def test_lines_count_every_task_and_the_last_line_is_all_of_them(capsys):
+    with LocalLines("generate", "lines", every_s=0.0):
+        assert dask.compute(_graph(), scheduler="sync") == (10,)
+    out, err = capsys.readouterr()
+    assert out == ""  # a log's lines go to stderr, the command's results alone to stdout
+    lines = err.splitlines()
+    parsed = [LINE.match(x) for x in lines]
+    assert all(parsed), lines
+    assert [(m[1], int(m[2]), int(m[3])) for m in parsed] == [("generate", k, 5) for k in range(1, 6)]
+    assert parsed[-1][4] is None and all(m[4] for m in parsed[:-1])  # time left until the end
+
+
+def test_lines_come_no_oftener_than_the_period_but_the_last_always(capsys):
+    with LocalLines("generate", "lines", every_s=3600.0):
+        dask.compute(_graph(), scheduler="sync")
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith("generate: 5/5 tasks done (")
+
+
+def test_a_failed_computation_has_no_done_line(capsys):
+    def fail():
+        raise RuntimeError("no")
+
+    with pytest.raises(RuntimeError), LocalLines("generate", "lines", every_s=3600.0):
+        dask.compute(dask.delayed(fail)(), scheduler="sync")
+    assert capsys.readouterr().err == ""
+
+
+def test_quiet_prints_nothing_and_a_terminal_gets_dasks_bar(capsys):
+    with LocalLines("generate", "off"):
+        dask.compute(_graph(), scheduler="sync")
+    assert capsys.readouterr() == ("", "")
+    with LocalLines("generate", "bar"):
+        dask.compute(_graph(), scheduler="sync")
+    out = capsys.readouterr().out
+    assert "100% Completed" in out and "tasks done" not in out
+
+
+# ------------------------------------------------------------------ a distributed client
+def test_following_a_cluster_prints_lines_while_tasks_run_and_all_of_them_at_the_end(capsys):
+    from distributed import Client
+
+    def slow(x):
+        time.sleep(0.5)
+        return x
+
+    with Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as client:
+        jobs = [dask.delayed(slow)(i) for i in range(3)]  # two at a time: about 1 s
+        keys = graph_keys(jobs)
+        futures = client.compute(jobs)
+        follow(client, futures, keys, "trace", "lines", every_s=0.2)
+        assert all(f.done() for f in futures)
+        err = capsys.readouterr().err.splitlines()
+        parsed = [LINE.match(x) for x in err]
+        assert all(parsed) and all(m[1] == "trace" and int(m[3]) == 3 for m in parsed), err
+        done = [int(m[2]) for m in parsed]
+        assert len(done) >= 2 and done == sorted(done) and done[0] < 3 and done[-1] == 3  # while running, then all
+        assert parsed[-1][4] is None
+
+        futures = client.compute([dask.delayed(slow)(i) for i in range(2)])
+        follow(client, futures, keys, "trace", "off", every_s=0.2)
+        assert capsys.readouterr() == ("", "")
+        client.gather(futures)
