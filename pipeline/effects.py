@@ -18,11 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from .analysis import HAZE_ANGLE_DEG, fwhm, image_quality
-from .figures import TRANSMITTED, open_dataset, value_label
+from .figures import TABLE1, open_dataset, value_label
 from .microstructure.model import tip_wall_angle_deg
+from .optics.interface import TRANSMITTED
 from .params import WoodParams
-
-TABLE1 = ("study-1", "study-2", "study-3", "study-4", "study-5-1", "study-5-2", "study-6")
 
 # The value of each study that the others are compared with: the Table 1 default scene
 # (docs/methods.md#table-1) where the study contains it, else its first value.

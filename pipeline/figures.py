@@ -32,15 +32,13 @@ import numpy as np
 
 from .analysis import HAZE_ANGLE_DEG, cauchy_fit, image_quality
 from .cache import atomic_write
-from .optics.interface import STATUS_NAMES
+from .optics.interface import TRANSMITTED, TRAPPED
 from .params import Grid, WoodParams, build_params, validate
 
 TABLE1 = ("study-1", "study-2", "study-3", "study-4", "study-5-1", "study-5-2", "study-6")
 SECTION_UM = (300.0, 500.0, 600.0)  # the block the sections bound, along R, T, L [µm]
 SECTION_VOXEL_UM = 0.5
 DPI = 110
-_STATUS = {name: code for code, name in STATUS_NAMES.items()}
-TRANSMITTED, TRAPPED = _STATUS["transmitted"], _STATUS["trapped"]
 
 
 def _pyplot():
