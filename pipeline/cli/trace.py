@@ -53,7 +53,7 @@ def add_trace(sub):
 
 
 def cmd_trace(args) -> int:
-    from ..optics.settings import Optics, settings_for
+    from ..optics.settings import Optics, check_method, settings_for
     from ..trace_job import TraceJob, check_rays_out, job_inputs, medium_of, run, strict_json, write_rays
 
     voxel = number(args.voxel_um, "voxel_um")
@@ -79,7 +79,8 @@ def cmd_trace(args) -> int:
         changes["refine"] = integer(args.refine, "refine", 1)
     elif args.volume:
         changes["refine"] = 1  # a user volume is traced on its own voxels
-    settings = settings_for(args.method, **changes)
+    # Generated wood and user volumes are voxel media today: the voxel methods trace them.
+    settings = settings_for(check_method(args.method, kind="voxels"), **changes)
     wood = thickness_um = None
     if args.volume:
         if args.thickness_mm or args.overrides or args.config:
