@@ -34,6 +34,17 @@ class Beam:
     direction: np.ndarray
     ray_ids: np.ndarray
 
+    def unit_directions(self) -> np.ndarray:
+        """(N, 3) unit directions, one per ray; a ParameterError unless each is non-zero and
+        points into the sample (+T)."""
+        n = len(self.ray_ids)
+        dirs = np.array(np.broadcast_to(np.asarray(self.direction, np.float64), (n, 3)))
+        norms = np.linalg.norm(dirs, axis=1)
+        if np.any(~(norms > 0)) or np.any(dirs[:, 1] <= 0):
+            raise ParameterError("beam directions must be non-zero and point into the sample (+T)")
+        dirs /= norms[:, None]
+        return dirs
+
     def __getitem__(self, part: slice) -> "Beam":
         """Rays ``part`` of the beam (the same rays, whatever the split)."""
         d = self.direction if np.ndim(self.direction) == 1 else self.direction[part]

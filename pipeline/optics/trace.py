@@ -59,11 +59,7 @@ def _trace_surfaces(medium, beam: Beam, optics: Optics, settings: TraceSettings)
             raise ParameterError(f"`{name}` is not available with method {settings.method} yet; trace angles "
                                  f"inside the sample, without Fresnel, from directions inside it")
     n = len(beam.ray_ids)
-    dirs = np.array(np.broadcast_to(np.asarray(beam.direction, np.float64), (n, 3)))
-    norms = np.linalg.norm(dirs, axis=1)
-    if np.any(~(norms > 0)) or np.any(dirs[:, 1] <= 0):
-        raise ParameterError("beam directions must be non-zero and point into the sample (+T)")
-    dirs /= norms[:, None]
+    dirs = beam.unit_directions()
     out = medium.trace_surfaces(beam.origins, dirs, n_wall=optics.n_wall, n_poly=optics.n_poly,
                                 max_events=settings.max_events)
     status = out.pop("status")

@@ -144,11 +144,7 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     cache = ChunkCache(source, capacity=capacity)
     n = len(beam.ray_ids)
     pos = beam.origins.astype(np.float64).copy()
-    dirs = np.array(np.broadcast_to(np.asarray(beam.direction, np.float64), (n, 3)))
-    norms = np.linalg.norm(dirs, axis=1)
-    if np.any(~(norms > 0)) or np.any(dirs[:, 1] <= 0):
-        raise ParameterError("beam directions must be non-zero and point into the sample (+T)")
-    dirs /= norms[:, None]
+    dirs = beam.unit_directions()
     vox = np.floor(pos).astype(np.int64)
     vox[:, 1] = 0
     pos[:, 1] = 0.0
