@@ -39,8 +39,8 @@ def near_ray(seed, M, m, dist):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def ray_group(seed, M, k, L):
-    """Ray group of column k around L: (L0, L1, slot); L0 = nan when none.
+def group_span(seed, M, k, g):
+    """(L0, L1) of the ray group of column k in slot g.
 
     Each slot of RAY_PERIOD cell heights holds one group of N(mean, sd)
     cells at a random offset, leaving at least RAY_MIN_GAP cells of gap.
@@ -48,13 +48,27 @@ def ray_group(seed, M, k, L):
     h = M[RHEIGHT]
     period = RAY_PERIOD * h
     phase = uniform(seed, _rng.RAY_GROUP, k, 1, 0) * period
-    g = np.int64(math.floor((L - phase) / period))
     ncell = round(M[RGROUP] + M[RGROUP_SD] * normal(seed, _rng.RAY_GROUP, k, 3, g))
     lo = max(1.0, min(5.0, round(M[RGROUP])))
     ncell = min(max(ncell, lo), RAY_PERIOD - RAY_MIN_GAP)
     off = math.floor(uniform(seed, _rng.RAY_GROUP, k, 4, g) * (RAY_PERIOD - RAY_MIN_GAP - ncell + 1))
     L0 = g * period + phase + off * h
-    L1 = L0 + ncell * h
+    return L0, L0 + ncell * h
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ray_slot(seed, M, k, L):
+    """The slot of column k's ray groups that holds L."""
+    period = RAY_PERIOD * M[RHEIGHT]
+    phase = uniform(seed, _rng.RAY_GROUP, k, 1, 0) * period
+    return np.int64(math.floor((L - phase) / period))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ray_group(seed, M, k, L):
+    """Ray group of column k around L: (L0, L1, slot); L0 = nan when none (:func:`group_span`)."""
+    g = ray_slot(seed, M, k, L)
+    L0, L1 = group_span(seed, M, k, g)
     if L < L0 or L > L1:
         return math.nan, math.nan, g
     return L0, L1, g

@@ -1,0 +1,353 @@
+"""Numba kernel of the exact tracer on the wood's own surfaces (docs/methods.md#the-exact-method).
+
+A ray advances by the clearance of the point it stands on (the smallest
+proven clearance of the primitives near it, :mod:`pipeline.microstructure.surface`):
+no phase change can lie within that distance, so no wall is stepped over.
+When the clearance falls below ``hit`` [µm] the ray stands within ``hit`` of
+a surface: the phase is sampled ``2·hit`` ahead; if it differs, the crossing
+is bracketed and bisected to ``tol`` [µm], the primitive that switched is
+found (its sign differs across the bracket) and its normal is the gradient of
+its signed function, by central differences of step ``h_grad`` [µm]; Snell's
+law, total internal reflection and Fresnel follow
+(:func:`~pipeline.optics.interface.interface_event`).  If the phase is the same,
+the ray passes the surface (a tangency, or a surface that does not change the
+phase there) and goes on.
+
+After a crossing the ray leaves the surface it crossed: that primitive is left
+out of the clearance until the next crossing.  Every primitive is convex along
+a straight line (an ellipse, a plane, a slab between two parallel planes, in
+the pulled-back coordinates), so after leaving it the ray meets it at most once
+more, and that crossing flips the phase sampled at the end of each step: the
+step's end differs from its start and the bracket search takes over.
+"""
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..microstructure.surface import MAX_PRIMS, N_COLS, P_REACH, evaluate_at
+from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
+
+NEEDS_REGION = NEEDS_CHUNK  # the ray left the precomputed region: the caller widens it and traces again
+
+
+@njit(cache=True, nogil=True)
+def _g_of(X, d, s, lq, ctx, P, key, cache):
+    """Signed function of primitive ``key`` at X + s·d (nan when it is not listed there)."""
+    ph, n = evaluate_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache)
+    for i in range(n):
+        if (P[i, 0] == key[0] and P[i, 1] == key[1] and P[i, 2] == key[2] and P[i, 3] == key[3]
+                and P[i, 4] == key[4]):
+            return P[i, 5]
+    return np.nan
+
+
+@njit(cache=True, nogil=True)
+def _switched(Pa, na, Pb, nb, key):
+    """The primitive whose sign differs between rows Pa and Pb (the smallest |g| at b); False if none."""
+    best = 1e300
+    found = False
+    for j in range(nb):
+        if Pb[j, 0] == P_REACH:
+            continue
+        for i in range(na):
+            if (Pa[i, 0] == Pb[j, 0] and Pa[i, 1] == Pb[j, 1] and Pa[i, 2] == Pb[j, 2]
+                    and Pa[i, 3] == Pb[j, 3] and Pa[i, 4] == Pb[j, 4]):
+                if (Pa[i, 5] < 0.0) != (Pb[j, 5] < 0.0) and abs(Pb[j, 5]) < best:
+                    best = abs(Pb[j, 5])
+                    for q in range(5):
+                        key[q] = Pb[j, q]
+                    found = True
+                break
+    return found
+
+
+@njit(cache=True, nogil=True)
+def _same(P, i, key):
+    return (P[i, 0] == key[0] and P[i, 1] == key[1] and P[i, 2] == key[2] and P[i, 3] == key[3]
+            and P[i, 4] == key[4])
+
+
+@njit(cache=True, nogil=True)
+def _nearest(P, n, skip, key):
+    """The row with the smallest clearance (not ``skip``, not a reach row), copied into ``key``;
+    returns (its index or -1, the smallest clearance of the other rows)."""
+    a = -1
+    for i in range(n):
+        if P[i, 0] == P_REACH or (skip[0] > 0.0 and _same(P, i, skip)):
+            continue
+        if a < 0 or P[i, 6] < P[a, 6]:
+            a = i
+    other = 1e300
+    for i in range(n):
+        if i == a or (skip[0] > 0.0 and _same(P, i, skip)):
+            continue
+        other = min(other, P[i, 6])
+    if a >= 0:
+        for q in range(5):
+            key[q] = P[a, q]
+    return a, other
+
+
+@njit(cache=True, nogil=True)
+def _find(P, n, key):
+    for i in range(n):
+        if _same(P, i, key):
+            return i
+    return -1
+
+
+@njit(cache=True, nogil=True)
+def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fseed, ctx,
+               hit, tol, h_grad, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache):
+    """Trace rays from ``pos`` (N, 3) [µm] with unit ``dirs`` through the wood between T = 0 and
+    T = ``thickness``; writes the exit point and direction, status, interfaces, path length [µm],
+    the number of point evaluations and of surfaces passed without a phase change, and the phase
+    each ray ends in.  ``log`` (N, E, 12) or empty: per ray its first E interfaces, (point,
+    primitive key, normal, phase after).
+
+    Each step: A, the primitive of least clearance, and the least clearance of the others.  Outside
+    A's negative set the ray may go as far as A's secant root (g convex along the ray: the secant
+    through two earlier points meets zero before g does); inside it, as far as the others allow
+    (A's negative set meets a line in one interval: A switches at most once).  The phase at the
+    step's end tells whether a primitive switched (A, or the one crossed last, which the ray has
+    left and meets at most once more); a switch is then bracketed by regula falsi on its g.
+    """
+    P = np.empty((MAX_PRIMS, N_COLS))
+    Pb = np.empty((MAX_PRIMS, N_COLS))
+    X = np.empty(3)
+    d = np.empty(3)
+    nd = np.empty(3)
+    nrm = np.empty(3)
+    key = np.zeros(5)
+    skip = np.zeros(5)
+    prev = np.zeros(5)
+    base = np.empty(3)
+    e = np.empty(3)
+    lq = 0.0
+    for r in range(pos.shape[0]):
+        for q in range(3):
+            X[q] = pos[r, q]
+            d[q] = dirs[r, q]
+        skip[0] = 0.0
+        prev[0] = 0.0
+        g_prev = 0.0
+        s_prev = 0.0
+        ev = 0
+        ne = 0
+        npass = 0
+        length = 0.0
+        st = 0
+        med, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache)
+        ne += 1
+        if med == 255:
+            st = NEEDS_REGION
+        while st == 0:
+            ph, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache)
+            ne += 1
+            if ph == 255:
+                st = NEEDS_REGION
+                break
+            a, other = _nearest(P, n, skip, key)
+            t_face = 1e300
+            if d[1] > 0.0:
+                t_face = (thickness - X[1]) / d[1]
+            elif d[1] < 0.0:
+                t_face = -X[1] / d[1]
+            g_a = 0.0
+            if a < 0:
+                step = other
+            else:
+                g_a = P[a, 5]
+                if g_a > 0.0:
+                    step = P[a, 6]
+                    if prev[0] > 0.0 and _same(P, a, prev) and g_prev > g_a and s_prev > 0.0:
+                        step = max(step, g_a * s_prev / (g_prev - g_a))
+                    step = min(step, other)
+                else:
+                    step = other
+            step *= step_scale
+            near = step <= hit
+            if near:
+                step = 2.0 * hit
+            at_face = step >= t_face
+            if at_face:
+                step = t_face
+            phb, nb = evaluate_at(X[0] + step * d[0], X[1] + step * d[1], X[2] + step * d[2], lq, ctx, Pb, cache)
+            ne += 1
+            if phb == 255:
+                st = NEEDS_REGION
+                break
+            if phb == med:
+                if near:
+                    npass += 1
+                for q in range(3):
+                    X[q] += step * d[q]
+                length += step
+                if at_face:
+                    X[1] = thickness if d[1] > 0.0 else 0.0
+                    st = TRANSMITTED if d[1] > 0.0 else REFLECTED
+                    break
+                if a >= 0:
+                    for q in range(5):
+                        prev[q] = key[q]
+                    g_prev = g_a
+                    s_prev = step
+                else:
+                    prev[0] = 0.0
+                continue
+            if ev >= max_events:
+                st = TRAPPED
+                break
+            # A crossing in (0, step].  Only A can switch there unless the step was the 2·hit probe.
+            # Only A or the primitive crossed last can switch within the step, unless it was the
+            # 2·hit probe: the one whose sign differs between the step's ends is the one.
+            lo = 0.0
+            hi = step
+            single = False
+            j = -1
+            g_lo = np.nan
+            if step <= other:
+                for cand in range(2):
+                    kk = key if cand == 0 else skip
+                    if kk[0] <= 0.0 or (cand == 0 and a < 0):
+                        continue
+                    i0 = _find(P, n, kk)
+                    i1 = _find(Pb, nb, kk)
+                    if i0 >= 0 and i1 >= 0 and (P[i0, 5] < 0.0) != (Pb[i1, 5] < 0.0):
+                        if single:
+                            single = False  # both switched: bisect the phase
+                            break
+                        single = True
+                        j = i1
+                        g_lo = P[i0, 5]
+                        if cand == 1:
+                            for q in range(5):
+                                key[q] = skip[q]
+            g_hi = Pb[j, 5] if j >= 0 else np.nan
+            ph_hi = phb
+            if single:
+                # Regula falsi (Illinois) on the sign of g: the root of the primitive itself.
+                side = 0
+                while hi - lo > tol:
+                    mid = lo + (hi - lo) * g_lo / (g_lo - g_hi)
+                    if not (lo < mid < hi) or hi - lo < 4.0 * tol:
+                        mid = 0.5 * (lo + hi)
+                    if mid <= lo or mid >= hi:
+                        break
+                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache)
+                    ne += 1
+                    i = _find(P, nm, key)
+                    if i < 0:
+                        single = False
+                        break
+                    gm = P[i, 5]
+                    if (gm < 0.0) == (g_lo < 0.0):
+                        lo = mid
+                        g_lo = gm
+                        if side == -1:
+                            g_hi *= 0.5
+                        side = -1
+                    else:
+                        hi = mid
+                        g_hi = gm
+                        ph_hi = phm
+                        if side == 1:
+                            g_lo *= 0.5
+                        side = 1
+                if single and ph_hi == med:
+                    # The primitive switched without changing the phase (e.g. the edge of a ray band
+                    # between two walls): go past it; what changes the phase lies further on.
+                    npass += 1
+                    for q in range(3):
+                        X[q] += hi * d[q]
+                        skip[q] = key[q]
+                    skip[3] = key[3]
+                    skip[4] = key[4]
+                    length += hi
+                    prev[0] = 0.0
+                    continue
+            if not single:
+                lo = 0.0
+                hi = step
+                nb_ = nb
+                while hi - lo > tol:
+                    mid = 0.5 * (lo + hi)
+                    if mid <= lo or mid >= hi:
+                        break
+                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache)
+                    ne += 1
+                    if phm == med:
+                        lo = mid
+                    else:
+                        hi = mid
+                        nb_ = nm
+                        for i in range(nm):
+                            for q in range(N_COLS):
+                                Pb[i, q] = P[i, q]
+                pa, na = evaluate_at(X[0] + lo * d[0], X[1] + lo * d[1], X[2] + lo * d[2], lq, ctx, P, cache)
+                ne += 1
+                if not _switched(P, na, Pb, nb_, key):
+                    npass += 1
+                    for q in range(3):
+                        X[q] += hi * d[q]
+                    length += hi
+                    med = phb
+                    skip[0] = 0.0
+                    continue
+            # The normal: the gradient of the switching primitive at the crossing.
+            sc = 0.5 * (lo + hi)
+            for q in range(3):
+                base[q] = X[q] + sc * d[q]
+            ok = True
+            for q in range(3):
+                e[0] = 0.0
+                e[1] = 0.0
+                e[2] = 0.0
+                e[q] = 1.0
+                gp = _g_of(base, e, h_grad, lq, ctx, P, key, cache)
+                gm = _g_of(base, e, -h_grad, lq, ctx, P, key, cache)
+                ne += 2
+                nrm[q] = (gp - gm) / (2.0 * h_grad)
+                if not (nrm[q] == nrm[q]):
+                    ok = False
+            s2 = math.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2])
+            if not ok or s2 == 0.0:
+                npass += 1
+                for q in range(3):
+                    X[q] += hi * d[q]
+                length += hi
+                med = phb
+                skip[0] = 0.0
+                continue
+            for q in range(3):
+                nrm[q] /= s2
+            new = interface_event(d, nrm, med, n_wall, n_poly, fresnel, fseed, ray_ids[r], ev, nd)
+            if log.shape[0] > r and ev < log.shape[1]:
+                for q in range(3):
+                    log[r, ev, q] = base[q]
+                    log[r, ev, 8 + q] = nrm[q]
+                for q in range(5):
+                    log[r, ev, 3 + q] = key[q]
+                log[r, ev, 11] = new
+            ev += 1
+            t_go = hi if new != med else lo
+            for q in range(3):
+                X[q] += t_go * d[q]
+            length += t_go
+            med = new
+            for q in range(3):
+                d[q] = nd[q]
+            for q in range(5):
+                skip[q] = key[q]
+            prev[0] = 0.0
+        for q in range(3):
+            out_pos[r, q] = X[q]
+            out_dir[r, q] = d[q]
+        status[r] = st
+        events[r] = ev
+        path[r] = length
+        evals[r] = ne
+        passes[r] = npass
+        medium_out[r] = med if med != 255 else 0

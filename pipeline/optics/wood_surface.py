@@ -1,0 +1,94 @@
+"""Generated wood as a surface medium: the method ``exact`` traces the model's own surfaces,
+no voxels (docs/methods.md#the-exact-method).
+
+The phase at a point is the generator's, bit for bit
+(:mod:`pipeline.microstructure.surface`); the tracer steps by proven
+clearances and bisects each crossing (:mod:`pipeline.optics._surface_march`).
+What a region of wood needs (distortion tiles, vessels) is built for the box
+the rays can reach; a ray that leaves it is traced again, from its start, in a
+wider box, so the result does not depend on the box.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from ..microstructure.surface import context_tuple, new_cache, phases, region_context
+from ..params import WoodParams
+from ._surface_march import NEEDS_REGION, trace_wood
+
+# Internal tolerances [µm] (docs/methods.md#the-exact-method); tests halve them all.
+HIT = 1e-9  # a clearance below this: the ray stands on a surface
+TOL = 1e-9  # crossings bisected to this
+H_GRAD = 1e-6  # central-difference step of a normal
+STEP_SCALE = 1.0  # fraction of the clearance stepped (1: the whole proven clearance)
+NAMES = ("position", "direction", "status", "events", "path", "evaluations", "passes", "medium")
+FIRST_MARGIN_UM = 60.0  # region around the entry points, then doubled for rays that leave it
+
+
+class WoodSurface:
+    """Generated wood of ``params`` and ``seed`` between T = 0 and T = ``thickness_um`` [µm],
+    unbounded along R and L, as a surface medium (method ``exact``)."""
+
+    def __init__(self, params: WoodParams, *, thickness_um: float, seed: int = 1, hit: float = HIT,
+                 tol: float = TOL, h_grad: float = H_GRAD, step_scale: float = STEP_SCALE):
+        self.params = params
+        self.thickness_um = float(thickness_um)
+        self.seed = int(seed)
+        self.hit, self.tol, self.h_grad, self.step_scale = float(hit), float(tol), float(h_grad), float(step_scale)
+        self.token = ("wood-surfaces", json.dumps(params.to_dict(), sort_keys=True), self.seed, self.thickness_um)
+        self.regions = 0  # region contexts built (each widening counts)
+
+    def _context(self, pos: np.ndarray, margin: float) -> tuple:
+        self.regions += 1
+        r = (float(pos[:, 0].min()) - margin, float(pos[:, 0].max()) + margin)
+        l = (float(pos[:, 2].min()) - margin, float(pos[:, 2].max()) + margin)
+        return context_tuple(region_context(self.params, self.seed, self.thickness_um, r, l))
+
+    def entry_phase(self, origins_um: np.ndarray) -> np.ndarray:
+        """The phase (1 wall, 0 polymer) at each entry point (T taken as 0)."""
+        pos = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
+        pos[:, 1] = 0.0
+        return phases(pos, 0.0, self._context(pos, 1.0))
+
+    def trace_surfaces(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int,
+                       fresnel: bool = False, seed: int = 0, ray_ids=None, log_events: int = 0) -> dict:
+        pos0 = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
+        pos0[:, 1] = 0.0
+        dirs0 = np.ascontiguousarray(directions, np.float64)
+        n = len(pos0)
+        ids = np.arange(n, dtype=np.int64) if ray_ids is None else np.asarray(ray_ids, np.int64)
+        out = {"position": np.empty((n, 3)), "direction": np.empty((n, 3)),
+               "status": np.full(n, NEEDS_REGION, np.int64), "events": np.zeros(n, np.int64),
+               "path": np.zeros(n), "evaluations": np.zeros(n, np.int64), "passes": np.zeros(n, np.int64),
+               "medium": np.zeros(n, np.uint8)}
+        margin = FIRST_MARGIN_UM + 0.25 * self.thickness_um
+        todo = np.arange(n)
+        while todo.size:
+            ctx = self._context(pos0[todo], margin)
+            k = todo.size
+            res = [np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64), np.empty(k, np.int64),
+                   np.empty(k), np.empty(k, np.int64), np.empty(k, np.int64), np.empty(k, np.uint8)]
+            log = np.zeros((k, log_events, 12) if log_events else (0, 0, 12))
+            trace_wood(pos0[todo], dirs0[todo], ids[todo], self.thickness_um, float(n_wall), float(n_poly),
+                       int(max_events), bool(fresnel), np.uint64(seed), ctx, self.hit, self.tol, self.h_grad,
+                       self.step_scale, *res, log, new_cache())
+            if log_events:
+                out.setdefault("log", np.zeros((n, log_events, 12)))[todo] = log
+            for name, arr in zip(NAMES, res):
+                out[name][todo] = arr
+            todo = todo[res[2] == NEEDS_REGION]
+            margin *= 2.0
+            if margin > 1e6:
+                raise RuntimeError("rays left every region tried: the tracer lost them")
+        return out
+
+
+def wood_surface(params: WoodParams, *, seed: int, thickness_um: float) -> WoodSurface:
+    """Generated wood as the medium of method ``exact``."""
+    if not math.isfinite(thickness_um) or thickness_um <= 0:
+        raise ValueError(f"`thickness` must be > 0, got {thickness_um}")
+    return WoodSurface(params, thickness_um=thickness_um, seed=seed)
