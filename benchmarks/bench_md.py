@@ -105,6 +105,30 @@ def render(doc: dict) -> str:
             md.append("Not run yet (`make bench-study`).")
     else:
         md.append("Not run (`make bench-study`).")
+    e = doc.get("exact")
+    md += ["", "## `exact` on generated wood", ""]
+    if e:
+        md += ["Birch 0.25 mm, 200 rays, ΔRI 0.01, one core; cold: no wood or distortion tile cached, kernels "
+               "compiled (each row a fresh process):", "",
+               "| method | interfaces | µs/interface cold | µs/interface warm |", "|---|---|---|---|"]
+        for r in e["per_interface"]:
+            md.append(f"| {r['method']} | {r['cold']['interfaces']} | {r['cold']['us_per_interface']:.1f} | "
+                      f"{r['warm']['us_per_interface']:.1f} |")
+        z = e["lazy_1_5mm"]
+        md += ["", f"1000 rays through 1.5 mm of birch with `exact`, cold, {z['threads']} threads: "
+               f"{z['seconds']:.1f} s, of which {z['seconds_building_regions']:.1f} s building the region "
+               f"(distortion tiles, vessels; {z['regions']} regions); {z['interfaces']:,} interfaces, "
+               f"{z['us_per_interface_wall']:.1f} µs each on the wall clock, {z['evaluations_per_interface']:.1f} "
+               f"point evaluations per interface; peak RSS {z['peak_rss_mb']:.0f} MiB; no voxel generated."]
+        f = e["refinement"]
+        d = f["exit_direction_change_rad"]
+        md += ["", f"Every step and tolerance halved (1000 rays × 1 mm, {f['interfaces_per_ray']:.0f} interfaces a ray): "
+               f"{f['rays_same_interfaces']} rays meet the same interfaces; exit directions move by {d['median']:.1e} rad "
+               f"(median), {d['p90']:.1e} (90th percentile); {f['rays_within_1e-6_rad']} rays within 1e-6 rad, "
+               f"{f['rays_within_1e-10_rad']} within 1e-10 rad; FWHM_R {f['fwhm_r_deg'][0]:.3f}° and "
+               f"{f['fwhm_r_deg'][1]:.3f}°."]
+    else:
+        md.append("Not run (`make bench-exact`).")
     c = _get(doc, "camera", "figure5")
     md += ["", "## Camera (Figure 5)", ""]
     if c:

@@ -64,6 +64,9 @@ def medium_of(job: TraceJob):
     """The medium ``job`` traces and the centre (R, L) of its beam [µm], after checking that the
     beam fits and the trace is not too big (before any work)."""
     if job.volume:
+        if job.settings.medium_kind != "voxels":
+            raise ParameterError(f"`method` {job.settings.method} traces the analytic surfaces of generated wood, "
+                                 f"and a --volume has voxels only: use --method accurate (or fast, paper)")
         if job.settings.refine > 1:
             raise ParameterError(f"`refine` applies to generated wood (--preset); a --volume has only its "
                                  f"own voxels, got refine={job.settings.refine}")
@@ -112,8 +115,9 @@ def run(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:
                     "delta_ri": job.optics.delta_ri, "ri_polymer": job.optics.n_poly,
                     "incidence_deg": list(job.incidence_deg or (0.0, 0.0)),
                     "seconds": time.perf_counter() - t0, "chunks_loaded": result.chunks_loaded})
-    if not job.volume:  # the wood the trace needed, against what it read
-        summary["voxels_generated"] = len(medium.distinct) * math.prod(medium.chunks)
+    if not job.volume:  # the wood the trace needed, against what it read (none for surfaces)
+        summary["voxels_generated"] = (len(medium.distinct) * math.prod(medium.chunks)
+                                       if job.settings.medium_kind == "voxels" else 0)
     return result, summary
 
 

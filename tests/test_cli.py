@@ -419,3 +419,20 @@ def test_large_volumes_get_an_ome_zarr_pyramid_that_viewers_open_coarse_first(tm
     assert run(capsys, "generate", "--size-um", "20,20,20", "--out", str(small))[0] == 0
     ms = json.loads((small / "zarr.json").read_text())["attributes"]["ome"]["multiscales"][0]
     assert [d["path"] for d in ms["datasets"]] == ["0"] and not (small / "1").exists()
+
+
+def test_trace_exact_on_generated_wood_reads_no_voxels_and_a_volume_is_refused(tmp_path, capsys):
+    import json
+
+    code, stdout, err = run(capsys, "trace", "--preset", "birch", "--thickness-mm", "0.05", "--delta-ri", "0.01",
+                            "--rays", "40", "--beam-um", "40", "--method", "exact", "--json")
+    assert code == 0, err
+    s = json.loads(stdout)
+    assert s["method"] == "exact" and s["voxels_generated"] == 0 and s["n_transmitted"] + s["n_lost"] == 40
+    assert s["fwhm_r_deg"] > 3 * s["fwhm_l_deg"]
+    vol = tmp_path / "v.npy"
+    np.save(vol, np.zeros((20, 20, 20), np.uint8))
+    code, _, err = run(capsys, "trace", "--volume", str(vol), "--method", "exact", "--rays", "5", "--beam-um", "2",
+                       "--delta-ri", "0.01")
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "--volume has voxels only: use --method accurate" in err

@@ -435,3 +435,18 @@ def test_a_study_prints_its_estimate_and_asks_for_yes_above_the_threshold(tmp_pa
     err = capsys.readouterr().err
     assert "`study` needs ~" in err and "CPU-s of CPU" in err and "add --yes (with make: YES=1) to run it" in err
     assert not (tmp_path / "r").exists()
+
+
+def test_an_exact_study_equals_the_trace_command_and_generates_no_wood(tmp_path, client, capsys):
+    """`exact` in a study: no wood-chunk stage, rays keyed without a voxel, the same numbers as
+    `twray trace --method exact` for the same scene."""
+    study = tmp_path / "exact.yaml"
+    study.write_text(tiny(tmp_path, [0.02]).read_text().replace("method: fast", "method: exact"))
+    out, _, plan = run(study, tmp_path / "c", tmp_path / "r", client)
+    assert not plan.micros
+    ds = xr.open_zarr(out, consolidated=False)
+    assert main(["trace", "--preset", "birch", "--thickness-mm", "0.03", "--delta-ri", "0.02",
+                 "--rays", "40", "--beam-um", "25", "--method", "exact", "--seed", "3", "--json"]) == 0
+    cli = json.loads(capsys.readouterr().out)
+    assert cli["fwhm_r_deg"] == float(ds.FWHM_R[0]) and cli["haze"] == float(ds.haze[0])
+    assert cli["voxels_generated"] == 0

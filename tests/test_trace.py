@@ -15,6 +15,7 @@ from pipeline.optics.rays import square_beam
 from pipeline.optics.settings import METHODS, Optics, TraceSettings, settings_for, traced_voxel_um
 from pipeline.optics.sources import ArraySource, WoodSource
 from pipeline.optics.trace import next_rays, trace
+from pipeline.optics.wood_surface import WoodSurface
 from pipeline.params import ParameterError, build_params, check_voxel
 
 BIRCH = build_params("birch")
@@ -71,8 +72,8 @@ def test_generated_wood_is_the_medium_the_method_traces():
     s = settings_for("accurate")
     wood = wood_medium(BIRCH, seed=2, thickness_um=30.0, voxel_um=0.5, settings=s)
     assert isinstance(wood, WoodSource) and wood.voxel_um == traced_voxel_um(0.5, s) == 0.25
-    with pytest.raises(ParameterError, match="`method` 'exact' traces analytic surfaces"):
-        wood_medium(BIRCH, seed=2, thickness_um=30.0, voxel_um=0.5, settings=settings_for("exact"))
+    surfaces = wood_medium(BIRCH, seed=2, thickness_um=30.0, voxel_um=0.5, settings=settings_for("exact"))
+    assert isinstance(surfaces, WoodSurface) and surfaces.thickness_um == 30.0
 
 
 def test_voxel_settings_belong_to_voxel_methods_and_old_flat_records_still_read():

@@ -134,7 +134,7 @@ def load_camera(path, *, scale: str = "paper") -> CameraStudy:
     trace = mapping(data.get("trace"), ("trace",), _TRACE)
     method = trace.get("method", "fast")
     try:
-        check_method(method, "trace.method", kind="voxels")
+        check_method(method, "trace.method")
     except ParameterError as exc:
         fail(("trace", "method"), str(exc))
     fresnel = trace.get("fresnel", False)

@@ -53,7 +53,7 @@ def add_trace(sub):
 
 
 def cmd_trace(args) -> int:
-    from ..optics.settings import Optics, check_method, settings_for
+    from ..optics.settings import METHODS, Optics, check_method, settings_for
     from ..trace_job import TraceJob, check_rays_out, job_inputs, medium_of, run, strict_json, write_rays
 
     voxel = number(args.voxel_um, "voxel_um")
@@ -77,10 +77,9 @@ def cmd_trace(args) -> int:
         changes["fresnel"] = True
     if args.refine is not None:
         changes["refine"] = integer(args.refine, "refine", 1)
-    elif args.volume:
+    elif args.volume and METHODS.get(args.method) == "voxels":
         changes["refine"] = 1  # a user volume is traced on its own voxels
-    # Generated wood and user volumes are voxel media today: the voxel methods trace them.
-    settings = settings_for(check_method(args.method, kind="voxels"), **changes)
+    settings = settings_for(check_method(args.method), **changes)
     wood = thickness_um = None
     if args.volume:
         if args.thickness_mm or args.overrides or args.config:

@@ -48,6 +48,54 @@ def tip_walls(seed, n, m, L, lo, hi, tip, phase, mean, aR, aT, out):
     out[0] = count
 
 
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def fibre_min_len(M):
+    """The shortest fibre cell along L: a cell holds its two tips only."""
+    min_len = min(50.0, 0.5 * M[FLEN])
+    if M[TIP] > 0.0:
+        min_len = max(min_len, min(M[TIP], 0.5 * M[FLEN]))
+    return min_len
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def centre_tables(seed, M, L, n, m, flag, lo, hi, cR, cT, Nt, rR1, rR0, tT1, tT0, FErow, FJrow):
+    """The per-centre tables of fibre (n, m) at L (see :func:`build_slice`): FErow and FJrow from
+    its node (cR, cT, inset Nt), its neighbours' R (n ± 1) and T (m ± 1) and its cell [lo, hi)
+    along L; ``flag`` 2 for a vessel member.  Returns (flag, aR, aT), the semi-axes as computed
+    (<= 0: no lumen)."""
+    polygon = M[SHAPE] == 1.0
+    tip = M[TIP]
+    if flag == 0 and tip == 0.0 and not math.isnan(lo) and (L - lo < 0.5 * M[PLATE] or hi - L < 0.5 * M[PLATE]):
+        flag = 1
+    raw_R = 0.0
+    raw_T = 0.0
+    aR = 0.0
+    aT = 0.0
+    if polygon:
+        FErow[0] = cR
+        FErow[1] = cT
+    else:
+        aR = 0.5 * (rR1 - rR0) - Nt
+        aT = 0.5 * (tT1 - tT0) + M[PUSH] * M[SCALE] - Nt
+        raw_R = aR
+        raw_T = aT
+        if aR <= 0.0 or aT <= 0.0:
+            if flag == 0:
+                flag = 1
+            aR = 1.0
+            aT = 1.0
+        FErow[0] = 0.5 * (rR1 + rR0)
+        FErow[1] = 0.5 * (tT1 + tT0)
+        FErow[2] = 1.0 / (aR * aR)
+        FErow[3] = 1.0 / (aT * aT)
+    FErow[4] = 0.0 if flag == 0 else 1e300
+    FJrow[0] = 0.0
+    if tip > 0.0 and flag == 0 and not polygon and not math.isnan(lo):
+        ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
+        tip_walls(seed, n, m, L, lo, hi, tip, ph, M[FLEN], aR, aT, FJrow)
+    return flag, raw_R, raw_T
+
+
 # --------------------------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
 def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG, VB, VIDX, rays, stats,
@@ -77,13 +125,7 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG,
     nn, nm = NR.shape
     node_states(seed, M, L, n_lo, m_lo, NR, NT, Nt, CV, CF, cn, ck)
     stats[ST_NODES] += nn * nm
-    push = M[PUSH] * M[SCALE]
-    polygon = M[SHAPE] == 1.0
-    plate = 0.5 * M[PLATE]
-    tip = M[TIP]
-    min_len = min(50.0, 0.5 * M[FLEN])
-    if tip > 0.0:
-        min_len = max(min_len, min(tip, 0.5 * M[FLEN]))  # a cell holds its two tips only
+    min_len = fibre_min_len(M)
     for i in range(1, nn - 1):
         for j in range(1, nm - 1):
             n = n_lo + i
@@ -93,8 +135,6 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG,
             flag = 0
             lo = np.nan
             hi = np.nan
-            aR = 0.0
-            aT = 0.0
             if member_of(vessels, nv, n, m):
                 flag = 2
             elif M[ENDS] != 0.0:
@@ -108,29 +148,9 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG,
                     ENDS_[a, j, 0] = lo
                     ENDS_[a, j, 1] = hi
                     stats[ST_LATTICE] += 1
-                if tip == 0.0 and (L - lo < plate or hi - L < plate):
-                    flag = 1
-            if polygon:
-                FE[i, j, 0] = NR[i, j]
-                FE[i, j, 1] = NT[i, j]
-            else:
-                aR = 0.5 * (NR[i + 1, j] - NR[i - 1, j]) - Nt[i, j]
-                aT = 0.5 * (NT[i, j + 1] - NT[i, j - 1]) + push - Nt[i, j]
-                if aR <= 0.0 or aT <= 0.0:
-                    if flag == 0:
-                        flag = 1
-                    aR = 1.0
-                    aT = 1.0
-                FE[i, j, 0] = 0.5 * (NR[i + 1, j] + NR[i - 1, j])
-                FE[i, j, 1] = 0.5 * (NT[i, j + 1] + NT[i, j - 1])
-                FE[i, j, 2] = 1.0 / (aR * aR)
-                FE[i, j, 3] = 1.0 / (aT * aT)
-            FE[i, j, 4] = 0.0 if flag == 0 else 1e300
-            FF[i, j] = flag
-            FJ[i, j, 0] = 0.0
-            if tip > 0.0 and flag == 0 and not polygon and not math.isnan(lo):
-                ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
-                tip_walls(seed, n, m, L, lo, hi, tip, ph, M[FLEN], aR, aT, FJ[i, j])
+            FF[i, j], _, _ = centre_tables(seed, M, L, n, m, flag, lo, hi, NR[i, j], NT[i, j], Nt[i, j],
+                                           NR[i + 1, j], NR[i - 1, j], NT[i, j + 1], NT[i, j - 1], FE[i, j],
+                                           FJ[i, j])
     for v in range(nv):
         n = vessels[v, 0]
         m = vessels[v, 1]
@@ -316,18 +336,21 @@ def _polygon_phase(pR, pT, u, w, n_lo, m_lo, FE, FF, Nt, cand_i, cand_j):
     if FF[bi, bj] != 0:
         return WALL
     for q in range(nc):
-        if q == best:
-            continue
-        ii = cand_i[q]
-        jj = cand_j[q]
-        ex = FE[ii, jj, 0] - FE[bi, bj, 0]
-        ey = FE[ii, jj, 1] - FE[bi, bj, 1]
-        dR = pR - FE[ii, jj, 0]
-        dT = pT - FE[ii, jj, 1]
-        dist = (dR * dR + dT * dT - bd) / (2.0 * math.sqrt(ex * ex + ey * ey))
-        if dist < 0.5 * (Nt[bi, bj] + Nt[ii, jj]):
+        if q != best and face_distance(pR, pT, FE, bi, bj, cand_i[q], cand_j[q], bd) < 0.5 * (
+                Nt[bi, bj] + Nt[cand_i[q], cand_j[q]]):
             return WALL
     return POLYMER
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def face_distance(pR, pT, FE, bi, bj, ii, jj, bd):
+    """Distance from (pR, pT) to the Voronoi face between centres (bi, bj) (nearest, at squared
+    distance ``bd``) and (ii, jj) of FE, positive on the nearest's side."""
+    ex = FE[ii, jj, 0] - FE[bi, bj, 0]
+    ey = FE[ii, jj, 1] - FE[bi, bj, 1]
+    dR = pR - FE[ii, jj, 0]
+    dT = pT - FE[ii, jj, 1]
+    return (dR * dR + dT * dT - bd) / (2.0 * math.sqrt(ex * ex + ey * ey))
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")

@@ -1,24 +1,17 @@
 """Numba kernel of the exact tracer on the wood's own surfaces (docs/methods.md#the-exact-method).
 
-A ray advances by the clearance of the point it stands on (the smallest
-proven clearance of the primitives near it, :mod:`pipeline.microstructure.surface`):
-no phase change can lie within that distance, so no wall is stepped over.
-When the clearance falls below ``hit`` [µm] the ray stands within ``hit`` of
-a surface: the phase is sampled ``2·hit`` ahead; if it differs, the crossing
-is bracketed and bisected to ``tol`` [µm], the primitive that switched is
-found (its sign differs across the bracket) and its normal is the gradient of
-its signed function, by central differences of step ``h_grad`` [µm]; Snell's
-law, total internal reflection and Fresnel follow
-(:func:`~pipeline.optics.interface.interface_event`).  If the phase is the same,
-the ray passes the surface (a tangency, or a surface that does not change the
-phase there) and goes on.
-
-After a crossing the ray leaves the surface it crossed: that primitive is left
-out of the clearance until the next crossing.  Every primitive is convex along
-a straight line (an ellipse, a plane, a slab between two parallel planes, in
-the pulled-back coordinates), so after leaving it the ray meets it at most once
-more, and that crossing flips the phase sampled at the end of each step: the
-step's end differs from its start and the bracket search takes over.
+Each point evaluation (:mod:`pipeline.microstructure.surface`) gives the
+phase and the primitives near the point, each with its signed function g and
+a proven clearance.  A step may never let two primitives switch, nor pass a
+regime surface (a ray band, a vessel outline, a ply) on the bounds of one
+side: outside the nearest primitive A (g convex along the ray) the ray goes
+to A's secant root at most; inside A as far as the others' clearance allows;
+the primitive crossed last is left out of the clearance once the ray has left
+its negative set.  A step whose end is in the other phase brackets a crossing,
+refined by regula falsi on the switching primitive's g to ``tol``; its normal
+is the gradient of g by central differences of step ``h_grad``.  A clearance
+below ``hit`` means the ray stands on a surface: the phase is sampled
+``2·hit`` ahead.
 """
 
 import math
@@ -26,7 +19,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..microstructure.surface import MAX_PRIMS, N_COLS, P_REACH, evaluate_at
+from ..microstructure.surface import MAX_PRIMS, N_COLS, P_BAND, P_PLY, P_REACH, P_VESSEL_OUT, evaluate_at
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
 
 NEEDS_REGION = NEEDS_CHUNK  # the ray left the precomputed region: the caller widens it and traces again
@@ -35,7 +28,7 @@ NEEDS_REGION = NEEDS_CHUNK  # the ray left the precomputed region: the caller wi
 @njit(cache=True, nogil=True)
 def _g_of(X, d, s, lq, ctx, P, key, cache):
     """Signed function of primitive ``key`` at X + s·d (nan when it is not listed there)."""
-    ph, n = evaluate_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache)
+    ph, n = evaluate_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, key)
     for i in range(n):
         if (P[i, 0] == key[0] and P[i, 1] == key[1] and P[i, 2] == key[2] and P[i, 3] == key[3]
                 and P[i, 4] == key[4]):
@@ -45,7 +38,8 @@ def _g_of(X, d, s, lq, ctx, P, key, cache):
 
 @njit(cache=True, nogil=True)
 def _switched(Pa, na, Pb, nb, key):
-    """The primitive whose sign differs between rows Pa and Pb (the smallest |g| at b); False if none."""
+    """The primitive whose sign differs between rows Pa and Pb (the smallest |g| at b), else the
+    row of smallest |g| at b; False if there is no row."""
     best = 1e300
     found = False
     for j in range(nb):
@@ -60,7 +54,23 @@ def _switched(Pa, na, Pb, nb, key):
                         key[q] = Pb[j, q]
                     found = True
                 break
+    if not found:
+        # Within rounding of its root a primitive's g may keep the sign that the generator's own
+        # inequality has already left: the nearest surface is the one.
+        for j in range(nb):
+            if Pb[j, 0] != P_REACH and abs(Pb[j, 5]) < best:
+                best = abs(Pb[j, 5])
+                for q in range(5):
+                    key[q] = Pb[j, q]
+                found = True
     return found
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _regime(kind):
+    """Surfaces past which other primitives apply (a ray band, a vessel outline, a ply): the rows
+    listed on one side say nothing of the other, so these are never stepped over blindly."""
+    return kind == P_BAND or kind == P_VESSEL_OUT or kind == P_PLY
 
 
 @njit(cache=True, nogil=True)
@@ -125,6 +135,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
     prev = np.zeros(5)
     base = np.empty(3)
     e = np.empty(3)
+    every = np.zeros(5)
     lq = 0.0
     for r in range(pos.shape[0]):
         for q in range(3):
@@ -139,12 +150,12 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
         npass = 0
         length = 0.0
         st = 0
-        med, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache)
+        med, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
         ne += 1
         if med == 255:
             st = NEEDS_REGION
         while st == 0:
-            ph, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache)
+            ph, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
             ne += 1
             if ph == 255:
                 st = NEEDS_REGION
@@ -155,6 +166,12 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                 t_face = (thickness - X[1]) / d[1]
             elif d[1] < 0.0:
                 t_face = -X[1] / d[1]
+            # The primitive crossed last is free to switch once more only from inside its
+            # negative set (a line that left a convex set does not come back to it).
+            skip_free = False
+            if skip[0] > 0.0:
+                i = _find(P, n, skip)
+                skip_free = i >= 0 and P[i, 5] < 0.0
             g_a = 0.0
             if a < 0:
                 step = other
@@ -165,6 +182,8 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                     if prev[0] > 0.0 and _same(P, a, prev) and g_prev > g_a and s_prev > 0.0:
                         step = max(step, g_a * s_prev / (g_prev - g_a))
                     step = min(step, other)
+                elif skip_free or _regime(P[a, 0]):  # one free primitive per step, and no regime
+                    step = min(P[a, 6], other)
                 else:
                     step = other
             step *= step_scale
@@ -174,7 +193,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             at_face = step >= t_face
             if at_face:
                 step = t_face
-            phb, nb = evaluate_at(X[0] + step * d[0], X[1] + step * d[1], X[2] + step * d[2], lq, ctx, Pb, cache)
+            phb, nb = evaluate_at(X[0] + step * d[0], X[1] + step * d[1], X[2] + step * d[2], lq, ctx, Pb, cache, every)
             ne += 1
             if phb == 255:
                 st = NEEDS_REGION
@@ -230,13 +249,14 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             if single:
                 # Regula falsi (Illinois) on the sign of g: the root of the primitive itself.
                 side = 0
+                moved = False
                 while hi - lo > tol:
                     mid = lo + (hi - lo) * g_lo / (g_lo - g_hi)
                     if not (lo < mid < hi) or hi - lo < 4.0 * tol:
                         mid = 0.5 * (lo + hi)
                     if mid <= lo or mid >= hi:
                         break
-                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache)
+                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache, key)
                     ne += 1
                     i = _find(P, nm, key)
                     if i < 0:
@@ -252,19 +272,22 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                     else:
                         hi = mid
                         g_hi = gm
-                        ph_hi = phm
+                        moved = True
                         if side == 1:
                             g_lo *= 0.5
                         side = 1
+                if single and moved:
+                    ph_hi, _ = evaluate_at(X[0] + hi * d[0], X[1] + hi * d[1], X[2] + hi * d[2], lq, ctx, P, cache,
+                                           every)
+                    ne += 1
                 if single and ph_hi == med:
                     # The primitive switched without changing the phase (e.g. the edge of a ray band
                     # between two walls): go past it; what changes the phase lies further on.
                     npass += 1
                     for q in range(3):
                         X[q] += hi * d[q]
-                        skip[q] = key[q]
-                    skip[3] = key[3]
-                    skip[4] = key[4]
+                    for q in range(5):
+                        skip[q] = 0.0 if _regime(key[0]) else key[q]
                     length += hi
                     prev[0] = 0.0
                     continue
@@ -276,7 +299,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                     mid = 0.5 * (lo + hi)
                     if mid <= lo or mid >= hi:
                         break
-                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache)
+                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache, every)
                     ne += 1
                     if phm == med:
                         lo = mid
@@ -286,7 +309,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                         for i in range(nm):
                             for q in range(N_COLS):
                                 Pb[i, q] = P[i, q]
-                pa, na = evaluate_at(X[0] + lo * d[0], X[1] + lo * d[1], X[2] + lo * d[2], lq, ctx, P, cache)
+                pa, na = evaluate_at(X[0] + lo * d[0], X[1] + lo * d[1], X[2] + lo * d[2], lq, ctx, P, cache, every)
                 ne += 1
                 if not _switched(P, na, Pb, nb_, key):
                     npass += 1
@@ -340,7 +363,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             for q in range(3):
                 d[q] = nd[q]
             for q in range(5):
-                skip[q] = key[q]
+                skip[q] = 0.0 if _regime(key[0]) else key[q]
             prev[0] = 0.0
         for q in range(3):
             out_pos[r, q] = X[q]

@@ -102,6 +102,19 @@ def interface_event(d, nrm, medium, n_wall, n_poly, fresnel, seed, ray_id, event
     return medium if tir else 1 - medium
 
 
+def enter_from(dirs: np.ndarray, n_in: np.ndarray, n_out: float) -> np.ndarray:
+    """Refract unit directions (in place) through the T = 0 face from index ``n_out`` into ``n_in``
+    (per ray); returns the statuses: REFLECTED where that is total reflection, else ACTIVE."""
+    tang = dirs[:, [0, 2]] * (n_out / n_in)[:, None]
+    s2 = np.sum(tang**2, axis=1)
+    tir = s2 >= 1.0
+    ok = ~tir
+    dirs[ok, 0] = tang[ok, 0]
+    dirs[ok, 2] = tang[ok, 1]
+    dirs[ok, 1] = np.sqrt(1.0 - s2[ok])
+    return np.where(tir, REFLECTED, ACTIVE).astype(np.int64)
+
+
 def leave_into_air(dirs: np.ndarray, n_in: np.ndarray, which: np.ndarray):
     """Directions (a copy) refracted from indices ``n_in`` into air through a T face where
     ``which``; and where that is total reflection (those rows left as they were)."""

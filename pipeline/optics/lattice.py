@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _exact as _X
+from ..params import ParameterError
 from .interface import REFLECTED, TRANSMITTED
 from .rays import RayResult
 from .settings import settings_for
@@ -154,7 +155,14 @@ class LatticeSlab:
     lattice: Lattice
     thickness_um: float
 
-    def trace_surfaces(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int) -> dict:
+    def entry_phase(self, origins_um) -> np.ndarray:
+        pos = np.asarray(origins_um, np.float64).reshape(-1, 3)
+        return np.array([self.lattice.phase([r], [0.0])[0, 0] for r in pos[:, 0]], np.uint8)
+
+    def trace_surfaces(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int,
+                       fresnel: bool = False, seed: int = 0, ray_ids=None) -> dict:
+        if fresnel:
+            raise ParameterError("`fresnel` is not available on the reference lattices: trace them without it")
         pos = np.array(origins_um, np.float64, copy=True)
         pos[:, 1] = 0.0
         return self.lattice._run(pos, np.ascontiguousarray(directions, np.float64), n_wall, n_poly,

@@ -9,8 +9,9 @@ Two kinds, each traced by the methods of its kind (``settings.METHODS``):
 * a **surface medium** knows its walls analytically and answers where a ray
   segment first meets one, and the wall's normal there, inside its own Numba
   kernel, applying the shared interface physics of
-  :mod:`pipeline.optics.interface` (today the exact reference lattices,
-  :class:`~pipeline.optics.lattice.LatticeSlab`).
+  :mod:`pipeline.optics.interface`: generated wood's own surfaces
+  (:class:`~pipeline.optics.wood_surface.WoodSurface`) and the exact reference
+  lattices (:class:`~pipeline.optics.lattice.LatticeSlab`).
 
 Study, camera and command line build a medium and call
 :func:`pipeline.optics.trace.trace`; they never ask which kind they hold.
@@ -22,9 +23,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from ..params import ParameterError
 from .settings import traced_voxel_um
 from .sources import WoodSource
+from .wood_surface import WoodSurface
 
 
 @runtime_checkable
@@ -50,11 +51,16 @@ class SurfaceMedium(Protocol):
 
     thickness_um: float
 
+    def entry_phase(self, origins_um: np.ndarray) -> np.ndarray:
+        """The phase (1 wall, 0 polymer) each ray enters at its entry point (T = 0)."""
+
     def trace_surfaces(self, origins_um: np.ndarray, directions: np.ndarray, *, n_wall: float, n_poly: float,
-                       max_events: int) -> dict:
+                       max_events: int, fresnel: bool = False, seed: int = 0, ray_ids=None) -> dict:
         """Trace rays from their entry points (T = 0, directions inside the sample) to where they
         leave; returns per-ray arrays ``position`` [µm], ``direction``, ``status``, ``events``,
-        ``path`` [µm] and any extras of the medium's own."""
+        ``path`` [µm], ``medium`` (the phase each ends in) and any extras of the medium's own.
+        With ``fresnel``, a refracted ray is reflected instead with the Fresnel reflectance, drawn
+        from the streams of (``seed``, ray id, interface)."""
 
 
 def kind_of(medium) -> str:
@@ -68,11 +74,11 @@ def kind_of(medium) -> str:
 
 def wood_medium(params, *, seed: int, thickness_um: float, voxel_um: float, settings, store=None, threads: int = 1):
     """Generated wood of ``params`` and ``seed``, ``thickness_um`` thick, as the medium that
-    ``settings.method`` traces: for a voxel method, its chunks at the scene's ``voxel_um``
+    ``settings.method`` traces: for ``exact`` its analytic surfaces (no voxels, ``voxel_um`` unused);
+    for a voxel method, its chunks at the scene's ``voxel_um``
     divided by the method's ``refine`` (from ``store`` when given, a
     :class:`~pipeline.microstructure.store.WoodChunkStore` of that wood and voxel)."""
-    if settings.medium_kind != "voxels":
-        raise ParameterError(f"`method` {settings.method!r} traces analytic surfaces, and generated wood "
-                             f"offers voxels only: use paper, fast or accurate")
+    if settings.medium_kind == "surfaces":
+        return WoodSurface(params, thickness_um=thickness_um, seed=seed, threads=threads)
     return WoodSource(params, thickness_um=thickness_um, voxel_um=traced_voxel_um(voxel_um, settings), seed=seed,
                       store=store, threads=threads)

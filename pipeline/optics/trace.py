@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from ..params import ParameterError
+from .interface import TIR_EXIT, TRANSMITTED, enter_from, leave_into_air
 from .media import kind_of
 from .rays import Beam, RayResult, concatenate
 from .settings import METHODS, Optics, TraceSettings
@@ -53,20 +54,46 @@ def trace(medium, beam: Beam, optics: Optics, settings: TraceSettings) -> RayRes
 
 
 def _trace_surfaces(medium, beam: Beam, optics: Optics, settings: TraceSettings) -> RayResult:
-    for name, asked in (("fresnel", settings.fresnel), ("exit: air", settings.exit == "air"),
-                        ("n_outside", optics.n_outside is not None)):
-        if asked:
-            raise ParameterError(f"`{name}` is not available with method {settings.method} yet; trace angles "
-                                 f"inside the sample, without Fresnel, from directions inside it")
+    """A surface medium's trace, with the faces handled as for voxels: refraction into the phase
+    each ray enters (``optics.n_outside``) and out into air (``settings.exit``)."""
     n = len(beam.ray_ids)
     dirs = beam.unit_directions()
-    out = medium.trace_surfaces(beam.origins, dirs, n_wall=optics.n_wall, n_poly=optics.n_poly,
-                                max_events=settings.max_events)
-    status = out.pop("status")
-    direction = out.pop("direction")
-    position, events, path = (out.pop(k) for k in ("position", "events", "path"))
-    return RayResult(position, direction, direction, status.astype(np.int64), events, path,
-                     np.zeros((n, 3), np.int64), settings, 0, None, extras=out)
+    status = np.zeros(n, np.int64)
+    n_entry = None
+    if optics.n_outside is not None or settings.exit == "air":
+        n_entry = np.where(medium.entry_phase(beam.origins) == 1, optics.n_wall, optics.n_poly)
+    if optics.n_outside is not None:
+        status = enter_from(dirs, n_entry, float(optics.n_outside))
+    entered = dirs.copy()
+    live = np.flatnonzero(status == 0)
+    out = medium.trace_surfaces(beam.origins[live], dirs[live], n_wall=optics.n_wall, n_poly=optics.n_poly,
+                                max_events=settings.max_events, fresnel=settings.fresnel, seed=optics.seed,
+                                ray_ids=beam.ray_ids[live])
+    position = np.array(beam.origins, np.float64, copy=True)
+    position[:, 1] = 0.0
+    direction = dirs.copy()
+    events, path = np.zeros(n, np.int64), np.zeros(n)
+    medium_end = np.zeros(n, np.uint8)
+    status[live] = out.pop("status")
+    for name, arr in (("position", position), ("direction", direction), ("events", events), ("path", path),
+                      ("medium", medium_end)):
+        arr[live] = out.pop(name)
+    extras = {"medium": medium_end}
+    for name, arr in out.items():
+        full = np.zeros((n,) + arr.shape[1:], arr.dtype)
+        full[live] = arr
+        extras[name] = full
+    exit_dirs, incident = direction, None
+    if settings.exit == "air":
+        done = status == TRANSMITTED
+        exit_dirs, tir = leave_into_air(direction, np.where(medium_end == 1, optics.n_wall, optics.n_poly), done)
+        status[done & tir] = TIR_EXIT
+        incident, blocked = leave_into_air(entered, n_entry, np.ones(n, bool))
+        incident[blocked] = np.nan
+    elif optics.n_outside is not None:
+        incident = entered
+    return RayResult(position, direction, exit_dirs, status, events, path, np.zeros((n, 3), np.int64), settings, 0,
+                     incident, extras=extras)
 
 
 TRACE_BATCHES = 40  # a long trace reports its progress batch by batch

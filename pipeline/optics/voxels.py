@@ -21,7 +21,8 @@ from ..params import ParameterError
 from . import _march as K
 from ._normals import NEWTON_REACH, window_scratch
 from ._packing import OUTSIDE, mark_boxes, phases_at
-from .interface import NEEDS_CHUNK, NEEDS_NORMAL, REFLECTED, SIDE, TIR_EXIT, TRANSMITTED, leave_into_air
+from .interface import (NEEDS_CHUNK, NEEDS_NORMAL, REFLECTED, SIDE, TIR_EXIT, TRANSMITTED, enter_from,
+                        leave_into_air)
 from .rays import Beam, RayResult
 from .settings import PRESETS, Optics, TraceSettings
 from .sources import ChunkCache
@@ -102,18 +103,6 @@ def _chunks_of_boxes(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.argwhere(grid) + base
 
 
-def _enter(dirs: np.ndarray, status: np.ndarray, n_in: np.ndarray, n_out: float) -> None:
-    """Refract directions (in place) through the T = 0 face from index n_out into n_in."""
-    tang = dirs[:, [0, 2]] * (n_out / n_in)[:, None]
-    s2 = np.sum(tang**2, axis=1)
-    tir = s2 >= 1.0
-    status[tir & (status == NEEDS_CHUNK)] = REFLECTED
-    ok = ~tir
-    dirs[ok, 0] = tang[ok, 0]
-    dirs[ok, 2] = tang[ok, 1]
-    dirs[ok, 1] = np.sqrt(1.0 - s2[ok])
-
-
 def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
                settings: TraceSettings = PRESETS["accurate"], seed: int = 0,
                capacity: int = 512, n_outside: float | None = None) -> RayResult:
@@ -168,7 +157,8 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     medium[medium == OUTSIDE] = 0
     n_entry = np.where(medium == 1, n_wall, n_poly)
     if n_outside is not None:
-        _enter(dirs, status, n_entry, float(n_outside))
+        tir = enter_from(dirs, n_entry, float(n_outside)) == REFLECTED
+        status[tir & (status == NEEDS_CHUNK)] = REFLECTED
     entered = dirs.copy()
     while True:
         K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,

@@ -210,11 +210,11 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         if k not in _TRACE:
             fail(("trace", k), f"unknown key `trace.{k}` (known: {', '.join(sorted(_TRACE))})")
     if method is not None:
-        check_method(method, kind="voxels")
+        check_method(method)
     else:
         method = trace.get("method", "accurate")
         try:
-            check_method(method, "trace.method", kind="voxels")
+            check_method(method, "trace.method")
         except ParameterError as exc:
             fail(("trace", "method"), str(exc))
     if "fresnel" in trace and not isinstance(trace["fresnel"], bool):
@@ -290,8 +290,8 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
             check_voxel(voxel_um, params)
         except ParameterError as exc:
             fail(("voxel_um",), str(exc))
-        step_um = settings.voxel.step_vox * traced_voxel_um(voxel_um, settings)
-        if settings.method == "paper" and step_um >= params.wall_thickness_um:
+        if settings.method == "paper" and (settings.voxel.step_vox * traced_voxel_um(voxel_um, settings)
+                                           >= params.wall_thickness_um):
             # A step as wide as the wall jumps over walls (docs/methods.md#voxel-methods: the paper's step is half a wall).
             fail(("trace", "step_vox"), f"`trace.step_vox` must be smaller than the wall "
                                         f"({params.wall_thickness_um:g} µm = "

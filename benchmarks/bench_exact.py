@@ -1,0 +1,148 @@
+"""`exact` on generated wood: speed beside the voxel methods, the 1.5 mm × 1000-ray trace cold,
+and the refinement check at 1000 rays × 1 mm (docs/methods.md#the-exact-method).
+
+Writes the "exact" section of results/bench.json:
+- per_interface: µs per interface on 0.25 mm of birch (200 rays, ΔRI 0.01) for `exact`,
+  `fast` and `accurate`, cold (no wood or distortion tile cached, kernels compiled) and warm
+  (the same trace again in the same process), on one core;
+- lazy_1_5mm: 1000 rays through 1.5 mm of birch, cold, on 2 threads: seconds, of which building
+  the region (distortion tiles, vessels), interfaces, evaluations per interface, peak RSS;
+- refinement: 1000 rays × 1 mm traced twice, the second time with every step and tolerance
+  halved: rays whose interfaces or exit directions differ, and by how much.
+Each part runs in a fresh process so that "cold" means it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+SNIPPETS = {}
+
+
+def _part(name):
+    def deco(f):
+        SNIPPETS[name] = f
+        return f
+    return deco
+
+
+def _setup():
+    from pipeline.microstructure.model import _tile  # noqa: F401  (the tile cache starts empty)
+    from pipeline.optics.media import wood_medium
+    from pipeline.optics.rays import square_beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.trace import trace
+    from pipeline.params import build_params
+    return wood_medium, square_beam, Optics, settings_for, trace, build_params
+
+
+def _compile(method):
+    """Compile the kernels on a tiny trace far away (other tiles, other chunks)."""
+    wood_medium, square_beam, Optics, settings_for, trace, build_params = _setup()
+    s = settings_for(method)
+    m = wood_medium(build_params("birch"), seed=99, thickness_um=10.0, voxel_um=0.5, settings=s)
+    trace(m, square_beam(4, 10.0, (5e4, 5e4), seed=1), Optics(1.53, 1.52), s)
+
+
+@_part("per_interface")
+def per_interface(method: str) -> dict:
+    wood_medium, square_beam, Optics, settings_for, trace, build_params = _setup()
+    _compile(method)
+    s = settings_for(method)
+    beam = square_beam(200, 150.0, seed=1)
+    out = {"method": method, "rays": 200, "thickness_mm": 0.25}
+    for phase in ("cold", "warm"):
+        m = wood_medium(build_params("birch"), seed=1, thickness_um=250.0, voxel_um=0.5, settings=s)
+        t0 = time.perf_counter()
+        r = trace(m, beam, Optics(1.53, 1.52), s)
+        dt = time.perf_counter() - t0
+        out[phase] = {"seconds": dt, "interfaces": int(r.events.sum()),
+                      "us_per_interface": 1e6 * dt / max(1, int(r.events.sum()))}
+    return out
+
+
+@_part("lazy_1_5mm")
+def lazy(_: str) -> dict:
+    from pipeline.microstructure import region
+    wood_medium, square_beam, Optics, settings_for, trace, build_params = _setup()
+    _compile("exact")
+    s = settings_for("exact")
+    built = []
+    original = region.region_context
+
+    def timed(*a, **k):
+        t0 = time.perf_counter()
+        try:
+            return original(*a, **k)
+        finally:
+            built.append(time.perf_counter() - t0)
+
+    import pipeline.optics.wood_surface as ws
+    ws.region_context = timed
+    m = wood_medium(build_params("birch"), seed=1, thickness_um=1500.0, voxel_um=0.5, settings=s, threads=2)
+    t0 = time.perf_counter()
+    r = trace(m, square_beam(1000, 150.0, seed=1), Optics(1.53, 1.52), s)
+    dt = time.perf_counter() - t0
+    ev = int(r.events.sum())
+    return {"rays": 1000, "thickness_mm": 1.5, "threads": 2, "seconds": dt, "seconds_building_regions": sum(built),
+            "regions": len(built), "interfaces": ev, "us_per_interface_wall": 1e6 * dt / ev,
+            "evaluations_per_interface": float(r.extras["evaluations"].sum() / ev),
+            "surfaces_passed_per_ray": float(r.extras["passes"].mean()),
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "voxels_generated": 0}
+
+
+@_part("refinement")
+def refinement(_: str) -> dict:
+    from pipeline.optics.wood_surface import WoodSurface
+    wood_medium, square_beam, Optics, settings_for, trace, build_params = _setup()
+    p = build_params("birch")
+    beam = square_beam(1000, 150.0, seed=1)
+    s = settings_for("exact")
+    a = trace(WoodSurface(p, thickness_um=1000.0, seed=1, threads=2), beam, Optics(1.53, 1.52), s)
+    b = trace(WoodSurface(p, thickness_um=1000.0, seed=1, threads=2, hit=5e-10, tol=5e-10, h_grad=5e-7,
+                          step_scale=0.5), beam, Optics(1.53, 1.52), s)
+    ang = np.arccos(np.clip(np.sum(a.direction * b.direction, axis=1), -1.0, 1.0))
+    same = a.events == b.events
+    return {"rays": 1000, "thickness_mm": 1.0, "interfaces_per_ray": float(a.events.mean()),
+            "rays_same_interfaces": int(same.sum()),
+            "exit_direction_change_rad": {"median": float(np.median(ang)), "p90": float(np.quantile(ang, 0.9)),
+                                          "max_same_interfaces": float(ang[same].max())},
+            "rays_within_1e-10_rad": int((ang <= 1e-10).sum()), "rays_within_1e-6_rad": int((ang <= 1e-6).sum()),
+            "fwhm_r_deg": [float(_fwhm(a)), float(_fwhm(b))]}
+
+
+def _fwhm(res):
+    from pipeline.analysis import summarize
+    return summarize(res, n_boot=2)["fwhm_r_deg"]
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", default="results/bench.json")
+    ap.add_argument("--part")
+    ap.add_argument("--method", default="exact")
+    args = ap.parse_args()
+    if args.part:  # one part, in this (fresh) process
+        print(json.dumps(SNIPPETS[args.part](args.method)))
+        return
+    from _bench_json import write_section
+
+    def fresh(part, method="exact"):
+        out = subprocess.run([sys.executable, __file__, "--part", part, "--method", method], check=True,
+                             capture_output=True, text=True).stdout
+        return json.loads(out.strip().splitlines()[-1])
+
+    result = {"per_interface": [fresh("per_interface", m) for m in ("exact", "fast", "accurate")],
+              "lazy_1_5mm": fresh("lazy_1_5mm"), "refinement": fresh("refinement")}
+    write_section(args.out, "exact", result)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""The region of wood a trace needs, as the arrays :func:`~pipeline.microstructure.surface.evaluate`
+reads (docs/methods.md#the-wood-as-surfaces): per ply its placement, seed, distortion grid (from
+the generator's cached tiles) with the Lipschitz bound of its pull-back, and its vessels indexed
+by bucket; and the phase at many points."""
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ._surface_cells import new_cache
+from ._surface_rows import MAX_PRIMS, N_COLS, VBUCKET, VESSEL_REACH, rates
+from .surface import evaluate_at
+
+
+def lipschitz_of_pull_back(patch: np.ndarray, G: float) -> float:
+    """A bound of ‖∂p/∂X‖ for the bilinear pull-back p = X − d(X) on ``patch``: 1 + the largest
+    Frobenius norm of ∂d/∂X over its cells (each partial derivative of a bilinear cell lies between
+    its two edge differences)."""
+    dx = np.abs(np.diff(patch, axis=0)) / G  # (ni-1, nj, 2): ∂d/∂R on cell edges
+    dy = np.abs(np.diff(patch, axis=1)) / G
+    mx = np.maximum(dx[:, :-1], dx[:, 1:])  # per cell
+    my = np.maximum(dy[:-1], dy[1:])
+    frob = np.sqrt((mx ** 2).sum(axis=2) + (my ** 2).sum(axis=2))
+    return float(1.0 + frob.max()) * (1.0 + 1e-12)
+
+
+def region_context(params, seed: int, thickness_um: float, r_range, l_range) -> dict:
+    """What :func:`evaluate` needs for the slab T ∈ [0, thickness] over R ∈ r_range, L ∈ l_range
+    [µm]: per ply its placement, seed, distortion grid (assembled from the generator's cached
+    tiles), pull-back bound and vessels; arrays padded to the largest ply."""
+    from . import _constants as K
+    from ._vessels import vessels_in_region
+    from .model import N_STATS, _patch, _plies, model_constants
+
+    M = model_constants(params)
+    c = params.node_pitch_um
+    G = c / K.GRID_PER_PITCH
+    stats = np.zeros(N_STATS, np.int64)
+    plies = [p for p in _plies(params, seed, 0.0, thickness_um) if p[7] < thickness_um or p[0] == 0]
+    rows, seeds, spans, patches, origins, lams, ves, nvs, boxes = [], [], [], [], [], [], [], [], []
+    for _, cs, sn, oR, oT, oL, ply_seed, t0, t1 in plies:
+        corners = [cs * r + sn * l + oR for r in r_range for l in l_range]
+        r_lo, r_hi = min(corners), max(corners)
+        tt_lo, tt_hi = max(t0, 0.0) + oT, min(t1, thickness_um) + oT
+        pseed = np.uint64(ply_seed)
+        patch, gi0, gj0 = _patch(pseed, M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0, stats)
+        dmax = float(np.abs(patch).max())
+        box = (math.floor((r_lo - dmax) / c) - 2, math.ceil((r_hi + dmax) / c) + 2,
+               math.floor((tt_lo - dmax - 80.0 * params.scale) / c) - 2,
+               math.ceil((tt_hi + dmax + 80.0 * params.scale) / c) + 2)
+        vessels = np.empty((8192, 5), np.int64)
+        nv = vessels_in_region(pseed, M, box[0] - VESSEL_REACH, box[1] + VESSEL_REACH,
+                               box[2] - VESSEL_REACH, box[3] + VESSEL_REACH, vessels)
+        rows.append((cs, sn, oR, oT, oL))
+        seeds.append(pseed)
+        spans.append((t0, t1))
+        patches.append(patch)
+        origins.append((gi0, gj0))
+        lams.append(lipschitz_of_pull_back(patch, G))
+        ves.append(vessels[:nv])
+        nvs.append(nv)
+        boxes.append(box)
+    buckets = [_vessel_buckets(v, box) for v, box in zip(ves, boxes)]
+    nptr = max(len(b[1]) for b in buckets)
+    nlist = max(1, max(len(b[2]) for b in buckets))
+    BP = np.zeros((len(plies), nptr), np.int64)
+    BL = np.zeros((len(plies), nlist), np.int64)
+    for q, (_, ptr, lst) in enumerate(buckets):
+        BP[q, :len(ptr)] = ptr
+        BL[q, :len(lst)] = lst
+    ni = max(p.shape[0] for p in patches)
+    nj = max(p.shape[1] for p in patches)
+    P = np.zeros((len(plies), ni, nj, 2))
+    for q, p in enumerate(patches):
+        P[q, :p.shape[0], :p.shape[1]] = p
+    V = np.zeros((len(plies), max(1, max(nvs)), 5), np.int64)
+    for q, v in enumerate(ves):
+        V[q, :len(v)] = v
+    return {
+        "M": M, "rates": rates(M), "plies": np.array(rows, np.float64), "seeds": np.array(seeds, np.uint64),
+        "spans": np.array(spans, np.float64), "patches": P,
+        "patch_shape": np.array([p.shape[:2] for p in patches], np.int64),
+        "origins": np.array(origins, np.int64), "lipschitz": np.array(lams), "vessels": V,
+        "n_vessels": np.array(nvs, np.int64), "boxes": np.array(boxes, np.int64),
+        "ply_thickness": float(params.ply_thickness_um) if params.laminate is not None else math.inf,
+        "first_ply": int(plies[0][0]), "bucket_shape": np.array([b[0] for b in buckets], np.int64),
+        "bucket_ptr": BP, "bucket_list": BL,
+    }
+
+
+def _vessel_buckets(vessels: np.ndarray, box) -> tuple:
+    """Per bucket of VBUCKET² nodes over ``box``, the starts of the clusters with a member within
+    12 nodes of the bucket (ascending), as (grid shape, pointers, starts)."""
+    nb = ((box[1] - box[0]) // VBUCKET + 1, (box[3] - box[2]) // VBUCKET + 1)
+    lists = [[] for _ in range(nb[0] * nb[1])]
+    v = 0
+    while v < len(vessels):
+        size = int(vessels[v, 4])
+        mem = vessels[v:v + size, :2]
+        i0 = max(0, (int(mem[:, 0].min()) - 12 - box[0]) // VBUCKET)
+        i1 = min(nb[0] - 1, (int(mem[:, 0].max()) + 12 - box[0]) // VBUCKET)
+        j0 = max(0, (int(mem[:, 1].min()) - 12 - box[2]) // VBUCKET)
+        j1 = min(nb[1] - 1, (int(mem[:, 1].max()) + 12 - box[2]) // VBUCKET)
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                lists[i * nb[1] + j].append(v)
+        v += size
+    ptr = np.zeros(len(lists) + 1, np.int64)
+    ptr[1:] = np.cumsum([len(x) for x in lists])
+    flat = np.array([v for x in lists for v in x], np.int64)
+    return np.array(nb, np.int64), ptr, flat
+
+
+def context_tuple(ctx: dict) -> tuple:
+    """The arrays of :func:`region_context` in the order the kernels take them."""
+    return (ctx["M"], ctx["rates"], ctx["plies"], ctx["seeds"], ctx["spans"], ctx["patches"],
+            ctx["patch_shape"], ctx["origins"], ctx["lipschitz"], ctx["vessels"], ctx["n_vessels"],
+            ctx["boxes"], ctx["ply_thickness"], ctx["first_ply"], ctx["bucket_shape"], ctx["bucket_ptr"],
+            ctx["bucket_list"])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _phases(points, lq, ctx, cache):
+    out = np.empty(points.shape[0], np.uint8)
+    P = np.empty((MAX_PRIMS, N_COLS))
+    every = np.zeros(5)
+    for i in range(points.shape[0]):
+        out[i], _ = evaluate_at(points[i, 0], points[i, 1], points[i, 2], lq, ctx, P, cache, every)
+    return out
+
+
+def phases(points, lq, ctx):
+    """Phase at each of ``points`` (N, 3) [µm] (255: outside the context's region)."""
+    return _phases(np.ascontiguousarray(points, np.float64), float(lq), ctx, new_cache())

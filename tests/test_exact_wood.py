@@ -1,0 +1,223 @@
+"""`exact` on generated wood: the model's own surfaces, no voxels (docs/methods.md#the-exact-method).
+
+The phase the tracer sees is the generator's, bit for bit; no wall is stepped
+over (interface counts against the generator sampled at 1/64 µm); halving
+every internal step and tolerance moves no exit direction; and the physics at
+the extremes is that of the other methods.
+"""
+
+import math
+import zlib
+
+import numpy as np
+import pytest
+
+from pipeline.analysis import summarize
+from pipeline.microstructure import region as R
+from pipeline.microstructure.model import generate_block
+from pipeline.optics import interface
+from pipeline.optics.media import wood_medium
+from pipeline.optics.rays import Beam, square_beam
+from pipeline.optics.settings import Optics, settings_for
+from pipeline.optics.trace import trace
+from pipeline.optics.wood_surface import WoodSurface
+from pipeline.params import Grid, build_params
+
+EXACT = settings_for("exact")
+VARIANTS = {
+    "birch": ("birch", {}),
+    "birch without vessels": ("birch", {"vessels": False}),
+    "birch without ray cells": ("birch", {"ray_cells": False}),
+    "birch with fibre tips": ("birch", {"fibre_tip_um": 200.0}),
+    "laminate [0/45/90/-30]": ("birch", {"laminate": (0, 45, 90, -30), "ply_thickness_um": 20.0}),
+    "balsa": ("balsa", {}),
+}
+
+
+def _block_phases(params, seed, start, shape, voxel):
+    """The generator's block and the surface model's phase at the same voxel centres."""
+    block = generate_block(params, Grid((0, 10**7, 0), voxel, (0.0, 0.0, 0.0)), start, shape, seed=seed)
+    idx = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
+    pts = (np.asarray(start) + idx + 0.5) * voxel
+    ctx = R.context_tuple(R.region_context(params, seed, float(pts[:, 1].max()) + 1.0,
+                                           (pts[:, 0].min() - 1, pts[:, 0].max() + 1),
+                                           (pts[:, 2].min() - 1, pts[:, 2].max() + 1)))
+    # A rotated ply's slices sit on the generator's L' lattice of voxel/2 (docs/methods.md#laminates).
+    return block.reshape(-1), R.phases(pts, 0.5 * voxel, ctx)
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_the_surface_model_is_the_generators_wood_bit_for_bit(variant):
+    preset, changes = VARIANTS[variant]
+    params = build_params(preset, overrides=changes)
+    rng = np.random.default_rng(zlib.crc32(variant.encode()))
+    compared = 0
+    for seed in (1, 8):
+        start = (int(rng.integers(-300, 300)), int(rng.integers(0, 200)), int(rng.integers(-300, 300)))
+        side = 96 if preset == "balsa" else 32  # balsa's cells are 35 µm across
+        block, surf = _block_phases(params, seed, start, (side, side, 10), 0.5)
+        assert not np.any(surf == 255)
+        assert np.array_equal(block, surf), f"{variant} seed {seed}: {np.sum(block != surf)} voxels differ"
+        assert 0.02 < block.mean() < 0.98  # both phases are there to be compared
+        compared += block.size
+    assert compared >= 2 * 32 * 32 * 10
+
+
+def test_bit_for_bit_where_the_model_is_busiest():
+    """Blocks on a vessel cluster, across a ply boundary, on a ray group's tapered end, across
+    fibre ends with tip walls, at 0.25 µm."""
+    from pipeline.microstructure._ray_cells import group_span, ray_row
+    from pipeline.microstructure.model import model_constants
+
+    birch = build_params("birch", overrides={"fibre_tip_um": 150.0})
+    ctx = R.region_context(birch, 3, 100.0, (0.0, 2000.0), (0.0, 10.0))
+    c = birch.node_pitch_um
+    members = ctx["vessels"][0, :ctx["n_vessels"][0]]
+    inside = members[(members[:, 1] * c > 20) & (members[:, 1] * c < 80) & (members[:, 0] * c > 20)]
+    v = inside[0]  # a vessel member (n, m): its centre near (n·c, m·c)
+    M = model_constants(birch)
+    k = 3
+    t_row = ray_row(np.uint64(3), M, k) * c
+    l_end = group_span(np.uint64(3), M, k, 2)[1]
+    cases = [
+        (birch, (int(v[0] * c / 0.5) - 40, int(v[1] * c / 0.5) - 40, 0), (80, 80, 6), 0.5),  # a vessel cluster
+        (birch, (0, int(t_row / 0.25) - 20, int(l_end / 0.25) - 40), (40, 40, 20), 0.25),  # a ray group's end
+        (build_params("birch", overrides={"laminate": (0, 30), "ply_thickness_um": 25.0}), (10, 80, 10),
+         (40, 40, 20), 0.25),  # across a ply boundary
+    ]
+    for params, start, shape, voxel in cases:
+        block, surf = _block_phases(params, 3, start, shape, voxel)
+        assert np.array_equal(block, surf) and 0.02 < block.mean() < 0.98
+
+
+def _generator_column_changes(params, seed, r_um, l_um, thickness_um, voxel=1.0 / 64):
+    """Phase changes along T at (R, L) = (r_um, l_um), the generator sampled every ``voxel`` µm."""
+    n = int(round(thickness_um / voxel))
+    grid = Grid((1, n, 1), voxel, (r_um - 0.5 * voxel, 0.0, l_um - 0.5 * voxel))
+    col = generate_block(params, grid, (0, 0, 0), (1, n, 1), seed=seed)[0, :, 0]
+    return int(np.count_nonzero(np.diff(col.astype(np.int8))))
+
+
+@pytest.mark.parametrize("preset,changes", [("birch", {}), ("balsa", {}), ("birch", {"fibre_tip_um": 100.0})])
+def test_at_zero_delta_ri_the_interfaces_are_the_generators_phase_changes(preset, changes):
+    """Index matched, rays go straight; each one's interface count equals the phase changes the
+    generator shows on its line sampled at 1/64 µm, counted independently."""
+    params = build_params(preset, overrides=changes)
+    thickness = 150.0
+    beam = square_beam(12, 300.0, seed=4)
+    res = trace(WoodSurface(params, thickness_um=thickness, seed=2), beam, Optics(1.5, 1.5), EXACT)
+    assert np.array_equal(res.direction, np.tile([0.0, 1.0, 0.0], (12, 1)))
+    expected = [_generator_column_changes(params, 2, r, l, thickness) for r, _, l in beam.origins]
+    assert res.events.tolist() == expected and sum(expected) > 12 * 5
+
+
+def test_oblique_rays_cross_every_phase_change_of_their_line():
+    """Oblique lines at 20-80° through birch with ray cells and tips and a laminate: interface
+    counts equal the phase changes of the surface model sampled every 1/64 µm on the line
+    (itself the generator, bit for bit, above)."""
+    for params in (build_params("birch", overrides={"fibre_tip_um": 120.0}),
+                   build_params("birch", overrides={"laminate": (0, 60, -45), "ply_thickness_um": 30.0})):
+        thickness = 60.0
+        rng = np.random.default_rng(5)
+        for angle in (20.0, 45.0, 80.0):
+            a = math.radians(angle)
+            d = np.array([math.sin(a) * math.cos(0.7), math.cos(a), math.sin(a) * math.sin(0.7)])
+            o = np.column_stack([rng.uniform(0, 200, 4), np.zeros(4), rng.uniform(0, 200, 4)])
+            res = trace(WoodSurface(params, thickness_um=thickness, seed=6), Beam(o, d, np.arange(4)),
+                        Optics(1.5, 1.5), EXACT)
+            length = thickness / d[1]
+            s = (np.arange(int(length * 64)) + 0.5) / 64
+            for i in range(4):
+                pts = o[i] + s[:, None] * d
+                ctx = R.context_tuple(R.region_context(params, 6, thickness, (pts[:, 0].min() - 2, pts[:, 0].max() + 2),
+                                                       (pts[:, 2].min() - 2, pts[:, 2].max() + 2)))
+                ph = R.phases(pts, 0.0, ctx)
+                assert res.events[i] == np.count_nonzero(np.diff(ph.astype(np.int8))), (angle, i)
+
+
+def test_halving_every_step_and_tolerance_moves_exit_directions_by_rounding_only():
+    """No fixed step is trusted: stepping half the proven clearance with half the tolerances
+    leaves the interfaces of nearly every ray as they were and moves their exit directions by
+    the rounding of the normals (central differences, ~1e-10 rad an interface, grown over ~30
+    refractions); the few rays that part are those that meet a wall at a grazing angle, where
+    1e-8 rad decides between refraction and total reflection (docs/methods.md#the-exact-method)."""
+    params = build_params("birch")
+    beam = square_beam(60, 200.0, seed=9)
+    optics = Optics(1.53, 1.52)
+    a = trace(WoodSurface(params, thickness_um=250.0, seed=1), beam, optics, EXACT)
+    b = trace(WoodSurface(params, thickness_um=250.0, seed=1, hit=5e-10, tol=5e-10, h_grad=5e-7, step_scale=0.5),
+              beam, optics, EXACT)
+    assert a.events.sum() > 60 * 20 and (b.extras["evaluations"] > a.extras["evaluations"]).all()
+    angle = np.arccos(np.clip(np.sum(a.direction * b.direction, axis=1), -1.0, 1.0))
+    close = angle < 1e-6
+    assert close.sum() >= 45 and np.median(angle) < 1e-7
+    assert np.array_equal(a.events[close], b.events[close])
+
+
+# ---------------------------------------------------------------- the extremes, as for the other methods
+def _birch(thickness=60.0, **kw):
+    return WoodSurface(build_params("birch"), thickness_um=thickness, seed=1, **kw)
+
+
+def _sound(res):
+    assert set(np.unique(res.status)) <= set(range(1, 6))
+    assert all(np.isfinite(x).all() for x in (res.position, res.direction, res.path))
+    assert np.allclose(np.linalg.norm(res.direction, axis=1), 1.0, atol=1e-12)
+
+
+def test_delta_ri_zero_and_1e_9_scatter_nothing_and_the_width_is_linear_in_delta_ri():
+    beam = square_beam(60, 100.0, seed=1)
+    widths = {}
+    for dri in (0.0, 1e-9, -1e-9, 1e-6):
+        res = trace(_birch(), beam, Optics(1.49 + dri, 1.49), EXACT)
+        _sound(res)
+        s = summarize(res, n_boot=2)
+        assert s["n_transmitted"] == 60 and s["haze"] == 0.0 and res.events.sum() > 300
+        widths[dri] = s["fwhm_r_deg"]
+    assert widths[0.0] == 0.0 and widths[1e-9] < 1e-5
+    assert widths[1e-6] / widths[1e-9] == pytest.approx(1000.0, rel=0.05)
+    assert widths[-1e-9] == pytest.approx(widths[1e-9], rel=0.1)
+
+
+@pytest.mark.parametrize("dri", [0.3, -0.3])
+def test_a_delta_ri_of_0_3_reflects_rays_back_and_every_ray_ends_finite(dri):
+    res = trace(_birch(), square_beam(120, 100.0, seed=1), Optics(1.49 + dri, 1.49), EXACT)
+    _sound(res)
+    s = summarize(res, n_boot=2)
+    assert res.counts()["reflected"] > 0 and res.counts()["transmitted"] >= 60
+    assert s["fwhm_r_deg"] > 10.0 and s["haze"] > 0.7 and s["fwhm_l_deg"] < 0.25 * s["fwhm_r_deg"]
+
+
+def test_oblique_incidence_from_air_fresnel_exit_into_air_and_the_event_cap():
+    beam = square_beam(40, 100.0, seed=3, direction=(math.tan(math.radians(30)), 1.0, math.tan(math.radians(-10))))
+    air = settings_for("exact", exit="air")
+    # Index matched: refracted in, straight through, refracted out along the beam's own direction.
+    res = trace(_birch(), beam, Optics(1.5, 1.5, 1.0, 0), air)
+    _sound(res)
+    np.testing.assert_allclose(res.exit_direction, res.incident, atol=1e-12)
+    np.testing.assert_allclose(res.exit_direction[0], beam.unit_directions()[0], atol=1e-12)
+    # Fresnel reflections: rays sent back, the same for the same seed, other for another.
+    plain = trace(_birch(), beam, Optics(1.6, 1.5, 1.0, 0), air)
+    fres = [trace(_birch(), beam, Optics(1.6, 1.5, 1.0, s), settings_for("exact", exit="air", fresnel=True))
+            for s in (0, 0, 1)]
+    assert np.array_equal(fres[0].direction, fres[1].direction)
+    assert not np.array_equal(fres[0].direction, fres[2].direction)
+    assert fres[0].counts()["reflected"] > plain.counts()["reflected"]
+    capped = trace(_birch(), beam, Optics(1.6, 1.5), settings_for("exact", max_events=3))
+    assert (capped.status == interface.TRAPPED).sum() > 30 and capped.events.max() == 3
+
+
+def test_two_millimetres_trace_through_with_interfaces_in_proportion():
+    beam = square_beam(6, 100.0, seed=2)
+    thin = trace(_birch(200.0), beam, Optics(1.53, 1.52), EXACT)
+    thick = trace(_birch(2000.0), beam, Optics(1.53, 1.52), settings_for("exact", max_events=100_000))
+    _sound(thick)
+    assert (thick.status == interface.TRANSMITTED).all()
+    assert thick.events.mean() / thin.events.mean() == pytest.approx(10.0, rel=0.2)
+
+
+def test_generated_wood_with_exact_reads_no_voxels():
+    medium = wood_medium(build_params("birch"), seed=1, thickness_um=50.0, voxel_um=0.5, settings=EXACT)
+    assert isinstance(medium, WoodSurface)
+    res = trace(medium, square_beam(5, 50.0, seed=1), Optics(1.53, 1.52), EXACT)
+    assert res.chunks_loaded == 0 and res.voxel_um is None and (res.extras["evaluations"] > 0).all()
