@@ -121,11 +121,10 @@ def render(doc: dict) -> str:
                f"{z['us_per_interface_wall']:.1f} µs each on the wall clock, {z['evaluations_per_interface']:.1f} "
                f"point evaluations per interface; peak RSS {z['peak_rss_mb']:.0f} MiB; no voxel generated."]
         f = e["refinement"]
-        d = f["exit_direction_change_rad"]
-        md += ["", f"Every step and tolerance halved (1000 rays × 1 mm, {f['interfaces_per_ray']:.0f} interfaces a ray): "
-               f"{f['rays_same_interfaces']} rays meet the same interfaces; exit directions move by {d['median']:.1e} rad "
-               f"(median), {d['p90']:.1e} (90th percentile); {f['rays_within_1e-6_rad']} rays within 1e-6 rad, "
-               f"{f['rays_within_1e-10_rad']} within 1e-10 rad; FWHM_R {f['fwhm_r_deg'][0]:.3f}° and "
+        md += ["", f"Every step and tolerance halved (1000 rays × 1 mm, {f['interfaces_per_ray']:.0f} interfaces a ray, "
+               f"{f['evaluations_ratio']:.1f}× the evaluations): {f['rays_bit_identical']} rays come out bit for bit "
+               f"the same, {f['rays_within_1e-10_rad']} within 1e-10 rad, {f['rays_same_interfaces']} with the same "
+               f"interfaces; the largest change {f['largest_change_rad']:.2g} rad; FWHM_R {f['fwhm_r_deg'][0]:.3f}° and "
                f"{f['fwhm_r_deg'][1]:.3f}°."]
     else:
         md.append("Not run (`make bench-exact`).")

@@ -189,14 +189,14 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
             if not math.isnan(lo) and tip == 0.0:  # end plates: the lumen between its two planes
                 g1 = (L - lo) - plate
                 g2 = (hi - L) - plate
-                if ge < 0.0:
+                if ge < 0.0 or wanted:
                     np_ = _row(P, np_, P_PLATE, n, m, 0, 0, g1, abs(g1))
                     np_ = _row(P, np_, P_PLATE, n, m, 1, 0, g2, abs(g2))
                 elif flag == 1:  # outside a closed lumen: it must open and be entered
                     viol = max(-g1 if g1 < 0.0 else 0.0, -g2 if g2 < 0.0 else 0.0)
                     clr = max(clr, viol)
             np_ = _row(P, np_, P_LUMEN, n, m, 0, 0, ge, clr)
-            if ge < 0.0 and tips and not math.isnan(lo):
+            if (ge < 0.0 or wanted) and tips and not math.isnan(lo):
                 for side in range(2):
                     b = lo if side == 0 else hi
                     gt = abs(L - b) - tip

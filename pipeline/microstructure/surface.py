@@ -123,7 +123,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_p, vessels, nv, vbo
         np_ = _row(P, np_, P_REACH, 0, 0, 0, 0, c, c / (lam_p + rt[R_BAND]))
     sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
     if r >= 0:
-        return _ray_cell(seed, M, Ls, pR, sT, rays[r:r + 1], lam_p, rt, P, np_)
+        return _ray_cell(seed, M, Ls, pR, sT, rays[r:r + 1], lam_p, rt, P, np_, want[0] > 0.0)
     n_fl = np.int64(math.floor(pR * inv_c))
     w_fl = np.int64(math.floor(sT * inv_c))
     if n_fl < vbox[0] or n_fl > vbox[1] or w_fl < vbox[2] or w_fl > vbox[3]:
@@ -190,7 +190,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_p, vessels, nv, vbo
         dT = sT - VG[q, 1]
         g = _ellipse_margin(dR, dT, VG[q, 2], VG[q, 3])
         np_ = _row(P, np_, P_VESSEL_OUT, VL[q, 0], VL[q, 1], 0, 0, g, abs(g) / (k_in + 2.1 * rn))
-        if g >= 0.0:
+        if g >= 0.0 and want[0] == 0.0:
             continue
         aR = VG[q, 2] - vwall
         aT = VG[q, 3] - vwall
@@ -198,7 +198,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_p, vessels, nv, vbo
             continue
         g = _ellipse_margin(dR, dT, aR, aT)
         np_ = _row(P, np_, P_VESSEL_IN, VL[q, 0], VL[q, 1], 0, 0, g, abs(g) / (k_in + 2.1 * rn))
-        if g >= 0.0:
+        if g >= 0.0 and want[0] == 0.0:
             continue
         for side in range(2):
             if VB[q, side, 0] == 0.0:
@@ -221,7 +221,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_p, vessels, nv, vbo
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_):
+def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_, wanted):
     """Inside a ray band: the generator's ray-cell phase, and the lumens and end walls near."""
     RC = np.empty((1, 6, 8))
     ray_slice_tables(seed, M, L, ray, 1, RC)
@@ -256,7 +256,7 @@ def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_):
                 continue
             g = _ellipse_margin(pT - Tc, L - Lc, aT, aL)
             np_ = _row(P, np_, P_RAY_LUMEN, k, s, ell, 0, g, abs(g) / k3)
-            if g >= 0.0:
+            if g >= 0.0 and not wanted:
                 continue
             ida = k * 8 + s
             phase = uniform(seed, _rng.RAY_CELL_PHASE, ida, 0, 0) * mean + 0.5 * mean * (ell % 2)

@@ -73,6 +73,19 @@ def _regime(kind):
     return kind == P_BAND or kind == P_VESSEL_OUT or kind == P_PLY
 
 
+LATTICE = 2.0 ** -40  # [µm] crossings land on this lattice along a segment (~1e-12 µm)
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _face(X, d, thickness):
+    """Distance along d from X to the T face the ray heads for (1e300 along the faces)."""
+    if d[1] > 0.0:
+        return (thickness - X[1]) / d[1]
+    if d[1] < 0.0:
+        return -X[1] / d[1]
+    return 1e300
+
+
 @njit(cache=True, nogil=True)
 def _same(P, i, key):
     return (P[i, 0] == key[0] and P[i, 1] == key[1] and P[i, 2] == key[2] and P[i, 3] == key[3]
@@ -125,6 +138,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
     left and meets at most once more); a switch is then bracketed by regula falsi on its g.
     """
     P = np.empty((MAX_PRIMS, N_COLS))
+    Pa = np.empty((MAX_PRIMS, N_COLS))
     Pb = np.empty((MAX_PRIMS, N_COLS))
     X = np.empty(3)
     d = np.empty(3)
@@ -138,6 +152,8 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
     every = np.zeros(5)
     lq = 0.0
     for r in range(pos.shape[0]):
+        # The ray is X0 + s·d on each straight segment: points are never accumulated step by
+        # step, so where a crossing lands depends on the surfaces, not on the steps taken.
         for q in range(3):
             X[q] = pos[r, q]
             d[q] = dirs[r, q]
@@ -150,22 +166,19 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
         npass = 0
         length = 0.0
         st = 0
+        s = 0.0
         med, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
         ne += 1
         if med == 255:
             st = NEEDS_REGION
+        t_face = _face(X, d, thickness)
         while st == 0:
-            ph, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
+            ph, n = evaluate_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, every)
             ne += 1
             if ph == 255:
                 st = NEEDS_REGION
                 break
             a, other = _nearest(P, n, skip, key)
-            t_face = 1e300
-            if d[1] > 0.0:
-                t_face = (thickness - X[1]) / d[1]
-            elif d[1] < 0.0:
-                t_face = -X[1] / d[1]
             # The primitive crossed last is free to switch once more only from inside its
             # negative set (a line that left a convex set does not come back to it).
             skip_free = False
@@ -177,23 +190,27 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                 step = other
             else:
                 g_a = P[a, 5]
-                if g_a > 0.0:
+                if skip_free or _regime(P[a, 0]):
+                    # One free primitive per step (the one crossed last), and no regime surface
+                    # passed blindly: A keeps its proven clearance.
+                    step = min(P[a, 6], other)
+                elif g_a > 0.0:
                     step = P[a, 6]
                     if prev[0] > 0.0 and _same(P, a, prev) and g_prev > g_a and s_prev > 0.0:
                         step = max(step, g_a * s_prev / (g_prev - g_a))
                     step = min(step, other)
-                elif skip_free or _regime(P[a, 0]):  # one free primitive per step, and no regime
-                    step = min(P[a, 6], other)
                 else:
                     step = other
             step *= step_scale
             near = step <= hit
             if near:
                 step = 2.0 * hit
-            at_face = step >= t_face
+            s_end = s + step
+            at_face = s_end >= t_face
             if at_face:
-                step = t_face
-            phb, nb = evaluate_at(X[0] + step * d[0], X[1] + step * d[1], X[2] + step * d[2], lq, ctx, Pb, cache, every)
+                s_end = t_face
+            phb, nb = evaluate_at(X[0] + s_end * d[0], X[1] + s_end * d[1], X[2] + s_end * d[2], lq, ctx, Pb, cache,
+                                  every)
             ne += 1
             if phb == 255:
                 st = NEEDS_REGION
@@ -201,10 +218,10 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             if phb == med:
                 if near:
                     npass += 1
-                for q in range(3):
-                    X[q] += step * d[q]
-                length += step
                 if at_face:
+                    for q in range(3):
+                        X[q] += t_face * d[q]
+                    length += t_face
                     X[1] = thickness if d[1] > 0.0 else 0.0
                     st = TRANSMITTED if d[1] > 0.0 else REFLECTED
                     break
@@ -212,22 +229,22 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                     for q in range(5):
                         prev[q] = key[q]
                     g_prev = g_a
-                    s_prev = step
+                    s_prev = s_end - s
                 else:
                     prev[0] = 0.0
+                s = s_end
                 continue
             if ev >= max_events:
                 st = TRAPPED
                 break
-            # A crossing in (0, step].  Only A can switch there unless the step was the 2·hit probe.
-            # Only A or the primitive crossed last can switch within the step, unless it was the
-            # 2·hit probe: the one whose sign differs between the step's ends is the one.
-            lo = 0.0
-            hi = step
+            # A crossing in (s, s_end].  Only A or the primitive crossed last can switch there,
+            # unless the step was the 2·hit probe: the one whose sign differs at the ends is the one.
+            lo = s
+            hi = s_end
             single = False
             j = -1
             g_lo = np.nan
-            if step <= other:
+            if s_end - s <= other:
                 for cand in range(2):
                     kk = key if cand == 0 else skip
                     if kk[0] <= 0.0 or (cand == 0 and a < 0):
@@ -245,22 +262,23 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                             for q in range(5):
                                 key[q] = skip[q]
             g_hi = Pb[j, 5] if j >= 0 else np.nan
-            ph_hi = phb
             if single:
                 # Regula falsi (Illinois) on the sign of g: the root of the primitive itself.
                 side = 0
-                moved = False
                 while hi - lo > tol:
                     mid = lo + (hi - lo) * g_lo / (g_lo - g_hi)
                     if not (lo < mid < hi) or hi - lo < 4.0 * tol:
                         mid = 0.5 * (lo + hi)
                     if mid <= lo or mid >= hi:
                         break
-                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache, key)
+                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache,
+                                          key)
                     ne += 1
                     i = _find(P, nm, key)
                     if i < 0:
                         single = False
+                        lo = s
+                        hi = s_end
                         break
                     gm = P[i, 5]
                     if (gm < 0.0) == (g_lo < 0.0):
@@ -272,58 +290,68 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                     else:
                         hi = mid
                         g_hi = gm
-                        moved = True
                         if side == 1:
                             g_lo *= 0.5
                         side = 1
-                if single and moved:
-                    ph_hi, _ = evaluate_at(X[0] + hi * d[0], X[1] + hi * d[1], X[2] + hi * d[2], lq, ctx, P, cache,
-                                           every)
-                    ne += 1
-                if single and ph_hi == med:
+            # The crossing on the lattice of LATTICE µm along the segment: the first lattice point
+            # in the new phase, whatever bracket led there.
+            klo = math.floor(lo / LATTICE)
+            khi = max(math.ceil(hi / LATTICE), klo + 1.0)
+            pl, na = evaluate_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
+                                 X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
+            ph_hi, nb = evaluate_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
+                                    X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
+            ne += 2
+            if pl != med:
+                klo = math.floor(s / LATTICE)
+                pl, na = evaluate_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
+                                     X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
+                ne += 1
+            if ph_hi == med:
+                if single:
                     # The primitive switched without changing the phase (e.g. the edge of a ray band
                     # between two walls): go past it; what changes the phase lies further on.
                     npass += 1
-                    for q in range(3):
-                        X[q] += hi * d[q]
                     for q in range(5):
                         skip[q] = 0.0 if _regime(key[0]) else key[q]
-                    length += hi
+                    s = khi * LATTICE
                     prev[0] = 0.0
                     continue
-            if not single:
-                lo = 0.0
-                hi = step
-                nb_ = nb
-                while hi - lo > tol:
-                    mid = 0.5 * (lo + hi)
-                    if mid <= lo or mid >= hi:
-                        break
-                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache, every)
-                    ne += 1
-                    if phm == med:
-                        lo = mid
-                    else:
-                        hi = mid
-                        nb_ = nm
-                        for i in range(nm):
-                            for q in range(N_COLS):
-                                Pb[i, q] = P[i, q]
-                pa, na = evaluate_at(X[0] + lo * d[0], X[1] + lo * d[1], X[2] + lo * d[2], lq, ctx, P, cache, every)
+                khi = max(math.ceil(s_end / LATTICE), klo + 1.0)
+                ph_hi, nb = evaluate_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
+                                        X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
                 ne += 1
-                if not _switched(P, na, Pb, nb_, key):
-                    npass += 1
-                    for q in range(3):
-                        X[q] += hi * d[q]
-                    length += hi
-                    med = phb
-                    skip[0] = 0.0
-                    continue
+            while khi - klo > 1.0:
+                kmid = math.floor(0.5 * (klo + khi))
+                phm, nm = evaluate_at(X[0] + kmid * LATTICE * d[0], X[1] + kmid * LATTICE * d[1],
+                                      X[2] + kmid * LATTICE * d[2], lq, ctx, P, cache, every)
+                ne += 1
+                if phm == med:
+                    klo = kmid
+                    na = nm
+                    for i in range(nm):
+                        for q in range(N_COLS):
+                            Pa[i, q] = P[i, q]
+                else:
+                    khi = kmid
+                    nb = nm
+                    for i in range(nm):
+                        for q in range(N_COLS):
+                            Pb[i, q] = P[i, q]
+            lo = klo * LATTICE
+            hi = khi * LATTICE
+            if not _switched(Pa, na, Pb, nb, key):
+                npass += 1
+                s = hi
+                med = 1 - med
+                skip[0] = 0.0
+                continue
             # The normal: the gradient of the switching primitive at the crossing.
-            sc = 0.5 * (lo + hi)
             for q in range(3):
-                base[q] = X[q] + sc * d[q]
+                base[q] = X[q] + hi * d[q]
             ok = True
+            g0 = _g_of(base, e, 0.0, lq, ctx, P, key, cache)
+            ne += 1
             for q in range(3):
                 e[0] = 0.0
                 e[1] = 0.0
@@ -333,15 +361,15 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                 gm = _g_of(base, e, -h_grad, lq, ctx, P, key, cache)
                 ne += 2
                 nrm[q] = (gp - gm) / (2.0 * h_grad)
+                if not (nrm[q] == nrm[q]):  # a side where the primitive is not listed: one-sided
+                    nrm[q] = (gp - g0) / h_grad if gp == gp else (g0 - gm) / h_grad
                 if not (nrm[q] == nrm[q]):
                     ok = False
             s2 = math.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2])
             if not ok or s2 == 0.0:
                 npass += 1
-                for q in range(3):
-                    X[q] += hi * d[q]
-                length += hi
-                med = phb
+                s = hi
+                med = 1 - med
                 skip[0] = 0.0
                 continue
             for q in range(3):
@@ -359,9 +387,11 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             for q in range(3):
                 X[q] += t_go * d[q]
             length += t_go
+            s = 0.0
             med = new
             for q in range(3):
                 d[q] = nd[q]
+            t_face = _face(X, d, thickness)
             for q in range(5):
                 skip[q] = 0.0 if _regime(key[0]) else key[q]
             prev[0] = 0.0
