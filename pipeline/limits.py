@@ -19,6 +19,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from .optics.settings import METHODS
 from .params import ParameterError
 
 CONFIRM_ENV = "TWRAY_CONFIRM_CPU_HOURS"
@@ -29,7 +30,9 @@ MEMORY_BYTES_PER_WOOD_VOXEL = 0.2  # chunks the tracer keeps bit-packed, and the
 RAY_BYTES = 512  # a ray's state, result and beam entry in one trace
 DATASET_RAY_BYTES = 24  # theta_r, theta_l, interfaces and status of a ray in a result Dataset
 BASE_MEMORY = 1 << 30  # the interpreter, compiled kernels and the chunk cache
-INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6}
+INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
+                   # exact: no wood generated, ~300 µs an interface with its region's tiles (BENCH.md)
+                   "exact": 3e-4}
 INTERFACES_PER_PITCH = 3.0  # interfaces met per cell pitch crossed (two walls, ray cells, vessels)
 SPREAD = 2.0  # chunks generated around the beam's column by spreading rays, as a factor
 CHUNK = 64  # voxels along a chunk edge in the study cache
@@ -116,7 +119,7 @@ def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: 
                    method: str, wood: bool = True, store: bool = False) -> Estimate:
     """One beam traced in one process (``wood``: generated as rays reach it; ``store``: kept on disk)."""
     interfaces = rays * INTERFACES_PER_PITCH * thickness_um / pitch_um
-    voxels = wood_voxels(beam_um, thickness_um, voxel_um) if wood else 0.0
+    voxels = wood_voxels(beam_um, thickness_um, voxel_um) if wood and METHODS[method] == "voxels" else 0.0
     cpu = interfaces * INTERFACE_CPU_S.get(method, INTERFACE_CPU_S["accurate"]) + voxels / GENERATE_VOXELS_PER_CPU_S
     memory = BASE_MEMORY + rays * RAY_BYTES + (0 if store else voxels * MEMORY_BYTES_PER_WOOD_VOXEL)
     return Estimate(cpu, memory, voxels * DISK_BYTES_PER_VOXEL if store else 0.0)
@@ -130,8 +133,9 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
         if s.target is not None:  # traced to a precision: at most its cap of rays
             s = dataclasses.replace(s, rays=s.target.max_rays)
         voxel = s.trace_voxel_um
-        key = (repr(s.wood), s.seed, voxel)
-        woods[key] = max(woods.get(key, 0.0), wood_voxels(s.beam_um, s.thickness_um, voxel))
+        if s.settings.medium_kind == "voxels":  # a surface method generates no wood
+            key = (repr(s.wood), s.seed, voxel)
+            woods[key] = max(woods.get(key, 0.0), wood_voxels(s.beam_um, s.thickness_um, voxel))
         shard = trace_estimate(rays=min(s.rays, shard_rays), beam_um=s.beam_um, thickness_um=s.thickness_um,
                                voxel_um=voxel, pitch_um=s.wood.fibre_diameter_um, method=s.settings.method,
                                wood=False, store=True)
@@ -157,8 +161,9 @@ def camera_estimate(images) -> Estimate:
             est = est + Estimate(rays * 1e-6, BASE_MEMORY, 0.0)
             continue
         voxel = traced_voxel_um(sh.voxel_um, cfg.settings)
-        key = (repr(sh.wood), sh.seed, voxel)
-        woods[key] = max(woods.get(key, 0.0), sh.width_um * sh.length_um * sh.thickness_um / voxel ** 3)
+        if cfg.settings.medium_kind == "voxels":  # a surface method generates no wood
+            key = (repr(sh.wood), sh.seed, voxel)
+            woods[key] = max(woods.get(key, 0.0), sh.width_um * sh.length_um * sh.thickness_um / voxel ** 3)
         cost = INTERFACE_CPU_S.get(cfg.settings.method, INTERFACE_CPU_S["accurate"])
         est = est + Estimate(rays * INTERFACES_PER_PITCH * sh.thickness_um / sh.wood.fibre_diameter_um * cost,
                              BASE_MEMORY, 0.0)

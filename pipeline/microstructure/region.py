@@ -3,12 +3,14 @@ reads (docs/methods.md#the-wood-as-surfaces): per ply its placement, seed, disto
 the generator's cached tiles) with the Lipschitz bound of its pull-back, and its vessels indexed
 by bucket; and the phase at many points."""
 
+import functools
 import math
 
 import numpy as np
 from numba import njit
 
 from ._surface_cells import new_cache
+from .model import N_STATS, _patch, _plies, _tile, model_constants
 from ._surface_rows import MAX_PRIMS, N_COLS, VBUCKET, VESSEL_REACH, rates
 from .surface import evaluate_at
 
@@ -25,13 +27,28 @@ def lipschitz_of_pull_back(patch: np.ndarray, G: float) -> float:
     return float(1.0 + frob.max()) * (1.0 + 1e-12)
 
 
+@functools.lru_cache(maxsize=8192)
+def _tile_lipschitz(seed: int, M_bytes: bytes, a: int, b: int, G: float) -> float:
+    return lipschitz_of_pull_back(_tile(seed, M_bytes, a, b)[0], G)
+
+
+def _patch_lipschitz(seed, M, gi0: int, gj0: int, shape, G: float) -> float:
+    """:func:`lipschitz_of_pull_back` of a patch of whole tiles, as the largest of its tiles' (each
+    cell of the patch lies in one tile), computed once per tile."""
+    from . import _constants as K
+
+    a0, b0 = gi0 // K.TILE, gj0 // K.TILE
+    na, nb = (shape[0] - 1) // K.TILE, (shape[1] - 1) // K.TILE
+    key = M.tobytes()
+    return max(_tile_lipschitz(int(seed), key, a, b, G) for a in range(a0, a0 + na) for b in range(b0, b0 + nb))
+
+
 def region_context(params, seed: int, thickness_um: float, r_range, l_range) -> dict:
     """What :func:`evaluate` needs for the slab T ∈ [0, thickness] over R ∈ r_range, L ∈ l_range
     [µm]: per ply its placement, seed, distortion grid (assembled from the generator's cached
     tiles), pull-back bound and vessels; arrays padded to the largest ply."""
     from . import _constants as K
     from ._vessels import vessels_in_region
-    from .model import N_STATS, _patch, _plies, model_constants
 
     M = model_constants(params)
     c = params.node_pitch_um
@@ -57,7 +74,7 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range) -> 
         spans.append((t0, t1))
         patches.append(patch)
         origins.append((gi0, gj0))
-        lams.append(lipschitz_of_pull_back(patch, G))
+        lams.append(_patch_lipschitz(pseed, M, gi0, gj0, patch.shape, G))
         ves.append(vessels[:nv])
         nvs.append(nv)
         boxes.append(box)

@@ -395,6 +395,9 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             for q in range(5):
                 skip[q] = 0.0 if _regime(key[0]) else key[q]
             prev[0] = 0.0
+        if st == NEEDS_REGION:  # where it stopped: the caller's next region holds it
+            for q in range(3):
+                X[q] += s * d[q]
         for q in range(3):
             out_pos[r, q] = X[q]
             out_dir[r, q] = d[q]

@@ -5,8 +5,9 @@ The phase at a point is the generator's, bit for bit
 (:mod:`pipeline.microstructure.surface`); the tracer steps by proven
 clearances and bisects each crossing (:mod:`pipeline.optics._surface_march`).
 What a region of wood needs (distortion tiles, vessels) is built for the box
-the rays can reach; a ray that leaves it is traced again, from its start, in a
-wider box, so the result does not depend on the box.
+around the entry points; a ray that leaves it is traced again, from its start,
+in a box around its path so far and wider, so the result does not depend on
+the box.
 """
 
 from __future__ import annotations
@@ -46,8 +47,8 @@ class WoodSurface:
 
     def _context(self, pos: np.ndarray, margin: float) -> tuple:
         self.regions += 1
-        r = (float(pos[:, 0].min()) - margin, float(pos[:, 0].max()) + margin)
-        l = (float(pos[:, 2].min()) - margin, float(pos[:, 2].max()) + margin)
+        r = (float(np.min(pos[:, 0])) - margin, float(np.max(pos[:, 0])) + margin)
+        l = (float(np.min(pos[:, 2])) - margin, float(np.max(pos[:, 2])) + margin)
         return context_tuple(region_context(self.params, self.seed, self.thickness_um, r, l))
 
     def entry_phase(self, origins_um: np.ndarray) -> np.ndarray:
@@ -69,8 +70,9 @@ class WoodSurface:
                "medium": np.zeros(n, np.uint8)}
         margin = FIRST_MARGIN_UM + 0.05 * self.thickness_um
         todo = np.arange(n)
+        reached = pos0.copy()  # a ray that leaves a region is traced again in one around its path so far
         while todo.size:
-            ctx = self._context(pos0[todo], margin)
+            ctx = self._context(np.concatenate([pos0[todo], reached[todo]]), margin)
             k = todo.size
             res = [np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64), np.empty(k, np.int64),
                    np.empty(k), np.empty(k, np.int64), np.empty(k, np.int64), np.empty(k, np.uint8)]
@@ -94,7 +96,9 @@ class WoodSurface:
                 out.setdefault("log", np.zeros((n, log_events, 12)))[todo] = log
             for name, arr in zip(NAMES, res):
                 out[name][todo] = arr
-            todo = todo[res[2] == NEEDS_REGION]
+            left = res[2] == NEEDS_REGION
+            reached[todo[left]] = res[0][left]
+            todo = todo[left]
             margin *= 2.0
             if margin > 1e6:
                 raise RuntimeError("rays left every region tried: the tracer lost them")
