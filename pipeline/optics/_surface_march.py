@@ -4,10 +4,10 @@ Each point evaluation (:mod:`pipeline.microstructure.surface`) gives the
 phase and the primitives near the point, each with its signed function g and
 a proven clearance.  A step may never let two primitives switch, nor pass a
 regime surface (a ray band, a vessel outline, a ply) on the bounds of one
-side: outside the nearest primitive A (g convex along the ray) the ray goes
-to A's secant root at most; inside A as far as the others' clearance allows;
-the primitive crossed last is left out of the clearance once the ray has left
-its negative set.  A step whose end is in the other phase brackets a crossing,
+side: a step is the least proven clearance, except that inside the nearest
+primitive A (its negative set, convex in the pulled-back coordinates, meets a
+line in one interval) A may switch once, and the primitive crossed last is left
+out of the clearance (the ray is leaving it).  A step whose end is in the other phase brackets a crossing,
 refined by regula falsi on the switching primitive's g to ``tol``; its normal
 is the gradient of g by central differences of step ``h_grad``.  A clearance
 below ``hit`` means the ray stands on a surface: the phase is sampled
@@ -131,11 +131,10 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
     primitive key, normal, phase after).
 
     Each step: A, the primitive of least clearance, and the least clearance of the others.  Outside
-    A's negative set the ray may go as far as A's secant root (g convex along the ray: the secant
-    through two earlier points meets zero before g does); inside it, as far as the others allow
-    (A's negative set meets a line in one interval: A switches at most once).  The phase at the
-    step's end tells whether a primitive switched (A, or the one crossed last, which the ray has
-    left and meets at most once more); a switch is then bracketed by regula falsi on its g.
+    A the step is A's clearance; inside A's negative set, as far as the others allow (it meets a
+    line in one interval: A switches at most once), unless the primitive crossed last is still free
+    to switch (one free primitive per step).  The phase at the step's end tells whether a primitive
+    switched; a switch is then bracketed by regula falsi on its g and put on the lattice.
     """
     P = np.empty((MAX_PRIMS, N_COLS))
     Pa = np.empty((MAX_PRIMS, N_COLS))
@@ -146,7 +145,6 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
     nrm = np.empty(3)
     key = np.zeros(5)
     skip = np.zeros(5)
-    prev = np.zeros(5)
     base = np.empty(3)
     e = np.empty(3)
     every = np.zeros(5)
@@ -158,9 +156,6 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             X[q] = pos[r, q]
             d[q] = dirs[r, q]
         skip[0] = 0.0
-        prev[0] = 0.0
-        g_prev = 0.0
-        s_prev = 0.0
         ev = 0
         ne = 0
         npass = 0
@@ -190,15 +185,11 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                 step = other
             else:
                 g_a = P[a, 5]
-                if skip_free or _regime(P[a, 0]):
-                    # One free primitive per step (the one crossed last), and no regime surface
-                    # passed blindly: A keeps its proven clearance.
+                if skip_free or g_a > 0.0 or _regime(P[a, 0]):
+                    # Approached from outside, A keeps its proven clearance; so it does while the
+                    # primitive crossed last is free (one free primitive per step), and a regime
+                    # surface is never passed blindly.
                     step = min(P[a, 6], other)
-                elif g_a > 0.0:
-                    step = P[a, 6]
-                    if prev[0] > 0.0 and _same(P, a, prev) and g_prev > g_a and s_prev > 0.0:
-                        step = max(step, g_a * s_prev / (g_prev - g_a))
-                    step = min(step, other)
                 else:
                     step = other
             step *= step_scale
@@ -225,13 +216,6 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                     X[1] = thickness if d[1] > 0.0 else 0.0
                     st = TRANSMITTED if d[1] > 0.0 else REFLECTED
                     break
-                if a >= 0:
-                    for q in range(5):
-                        prev[q] = key[q]
-                    g_prev = g_a
-                    s_prev = s_end - s
-                else:
-                    prev[0] = 0.0
                 s = s_end
                 continue
             if ev >= max_events:
@@ -315,7 +299,6 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                     for q in range(5):
                         skip[q] = 0.0 if _regime(key[0]) else key[q]
                     s = khi * LATTICE
-                    prev[0] = 0.0
                     continue
                 khi = max(math.ceil(s_end / LATTICE), klo + 1.0)
                 ph_hi, nb = evaluate_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
@@ -394,7 +377,6 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             t_face = _face(X, d, thickness)
             for q in range(5):
                 skip[q] = 0.0 if _regime(key[0]) else key[q]
-            prev[0] = 0.0
         if st == NEEDS_REGION:  # where it stopped: the caller's next region holds it
             for q in range(3):
                 X[q] += s * d[q]
