@@ -268,3 +268,14 @@ def test_camera_command_writes_results_and_a_rerun_renders_nothing(tmp_path, cap
     ds = xr.open_zarr(tmp_path / "r" / "cam.zarr", consolidated=False)
     assert ds.attrs["scale"] == "small" and ds["image"].shape == (2, 9, 11)
     assert (tmp_path / "r" / "cam.zarr" / "zarr.json").stat().st_mtime_ns == before  # kept as it was
+
+
+def test_exact_renders_through_the_woods_own_surfaces():
+    """`exact` behind the camera: index matched, the ideal image; at ΔRI = 0.03, blurred."""
+    cam = Camera(6.25, 162.5, 1.0, (9, 9), 1.7, 4).validate()
+    t = make_target({"kind": "char", "char": "F", "size_mm": 0.35})
+    matched = render(cam, sheet(ri_wall=1.53, thickness_um=60.0), t, method="exact")
+    assert matched.interfaces > 5 * matched.image.size * cam.samples and matched.lost.sum() == 0
+    assert np.abs(matched.image - ideal_image(cam, t)).max() < 0.02
+    scattering = render(cam, sheet(ri_wall=1.56, thickness_um=60.0), t, method="exact")
+    assert np.abs(scattering.image - ideal_image(cam, t)).max() > 0.1
