@@ -22,9 +22,10 @@ from ..microstructure.surface import new_cache
 from ..params import WoodParams
 from ._surface_march import NEEDS_REGION, trace_wood
 
-# Internal tolerances [µm] (docs/methods.md#the-exact-method); tests halve them all.
+# Internal steps and tolerances [µm] (docs/methods.md#the-exact-method); halving them leaves the
+# rays as they are (crossings land on a fixed lattice).  H_GRAD is part of the normal's definition.
 HIT = 1e-9  # a clearance below this: the ray stands on a surface
-TOL = 1e-9  # crossings bisected to this
+TOL = 1e-9  # regula falsi narrows a crossing to this before the lattice bisection
 H_GRAD = 1e-6  # central-difference step of a normal
 STEP_SCALE = 1.0  # fraction of the clearance stepped (1: the whole proven clearance)
 NAMES = ("position", "direction", "status", "events", "path", "evaluations", "passes", "medium")
