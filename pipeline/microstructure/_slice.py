@@ -96,6 +96,35 @@ def centre_tables(seed, M, L, n, m, flag, lo, hi, cR, cT, Nt, rR1, rR0, tT1, tT0
     return flag, raw_R, raw_T
 
 
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def vessel_outline(rl, rr, td, tu, out):
+    """A vessel member's outline (cR, cT, aR, aT) from the R of nodes (n ∓ 3, m) and the T of
+    nodes (n, m ∓ 3)."""
+    out[0] = 0.5 * (rl + rr)
+    out[1] = 0.5 * (td + tu)
+    out[2] = 0.5 * (rr - rl) * VESSEL_AXIS_R
+    out[3] = 0.5 * (tu - td)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def vessel_walls(VG, vessels, nv, VB):
+    """The walls cluster neighbours share (VB, see :func:`build_slice`) from their outlines VG."""
+    for v in range(nv):
+        for side in range(2):
+            u = v - 1 + 2 * side
+            VB[v, side, 0] = 0.0
+            if u < 0 or u >= nv or vessels[u, 2] != vessels[v, 2]:
+                continue
+            ex = VG[u, 0] - VG[v, 0]
+            ey = VG[u, 1] - VG[v, 1]
+            VB[v, side, 0] = 1.0
+            VB[v, side, 1] = ex
+            VB[v, side, 2] = ey
+            VB[v, side, 3] = math.sqrt(ex * ex + ey * ey)
+            VB[v, side, 4] = 0.5 * (VG[u, 0] + VG[v, 0])
+            VB[v, side, 5] = 0.5 * (VG[u, 1] + VG[v, 1])
+
+
 # --------------------------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
 def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG, VB, VIDX, rays, stats,
@@ -158,24 +187,8 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG,
         rr, _, _ = node_state(seed, M, n + 3, m, L)
         _, td, _ = node_state(seed, M, n, m - 3, L)
         _, tu, _ = node_state(seed, M, n, m + 3, L)
-        VG[v, 0] = 0.5 * (rl + rr)
-        VG[v, 1] = 0.5 * (td + tu)
-        VG[v, 2] = 0.5 * (rr - rl) * VESSEL_AXIS_R
-        VG[v, 3] = 0.5 * (tu - td)
-    for v in range(nv):
-        for side in range(2):
-            u = v - 1 + 2 * side
-            VB[v, side, 0] = 0.0
-            if u < 0 or u >= nv or vessels[u, 2] != vessels[v, 2]:
-                continue
-            ex = VG[u, 0] - VG[v, 0]
-            ey = VG[u, 1] - VG[v, 1]
-            VB[v, side, 0] = 1.0
-            VB[v, side, 1] = ex
-            VB[v, side, 2] = ey
-            VB[v, side, 3] = math.sqrt(ex * ex + ey * ey)
-            VB[v, side, 4] = 0.5 * (VG[u, 0] + VG[v, 0])
-            VB[v, side, 5] = 0.5 * (VG[u, 1] + VG[v, 1])
+        vessel_outline(rl, rr, td, tu, VG[v])
+    vessel_walls(VG, vessels, nv, VB)
     VIDX[:, :] = -1
     for v in range(nv):
         first = v - vessels[v, 3]

@@ -30,11 +30,11 @@ from numba import njit
 from .. import rng as _rng
 from ..rng import uniform
 from ._constants import (PITCH, RAYS, RHEIGHT, RJIT, RLEN, RLEN_SD, RRAMP, RSER, RSPACE, RSQUEEZE, SCALE, SHAPE, T0,
-                         VESSEL_AXIS_R, VWALL)
+                         VWALL)
 from ._distortion import pull_back
 from ._lattice import chain_interval
 from ._ray_cells import group_span, ray_band_width, ray_cell_phase, ray_group, ray_row, ray_slice_tables
-from ._slice import _squeeze_and_classify, _vessel_phase
+from ._slice import _squeeze_and_classify, _vessel_phase, vessel_outline, vessel_walls
 
 from ._surface_cells import _ellipses, _polygon, new_cache, node_cached  # noqa: F401
 
@@ -157,24 +157,8 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_p, vessels, nv, vbo
         rr, _, _ = node_cached(seed, M, n + 3, m, Ls, cache)
         _, td, _ = node_cached(seed, M, n, m - 3, Ls, cache)
         _, tu, _ = node_cached(seed, M, n, m + 3, Ls, cache)
-        VG[q, 0] = 0.5 * (rl + rr)
-        VG[q, 1] = 0.5 * (td + tu)
-        VG[q, 2] = 0.5 * (rr - rl) * VESSEL_AXIS_R
-        VG[q, 3] = 0.5 * (tu - td)
-    for q in range(ns):
-        for side in range(2):
-            u = q - 1 + 2 * side
-            VB[q, side, 0] = 0.0
-            if u < 0 or u >= ns or VL[u, 2] != VL[q, 2]:
-                continue
-            ex = VG[u, 0] - VG[q, 0]
-            ey = VG[u, 1] - VG[q, 1]
-            VB[q, side, 0] = 1.0
-            VB[q, side, 1] = ex
-            VB[q, side, 2] = ey
-            VB[q, side, 3] = math.sqrt(ex * ex + ey * ey)
-            VB[q, side, 4] = 0.5 * (VG[u, 0] + VG[q, 0])
-            VB[q, side, 5] = 0.5 * (VG[u, 1] + VG[q, 1])
+        vessel_outline(rl, rr, td, tu, VG[q])
+    vessel_walls(VG, VL, ns, VB)
     first = -1
     for q in range(ns):
         i0 = np.int64(math.floor((VG[q, 0] - VG[q, 2]) / c))
