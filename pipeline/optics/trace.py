@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from ..params import ParameterError
-from .interface import TIR_EXIT, TRANSMITTED, enter_from, leave_into_air
+from .interface import ACTIVE, TIR_EXIT, TRANSMITTED, enter_from, leave_into_air
 from .media import kind_of
 from .rays import Beam, RayResult, concatenate
 from .settings import METHODS, Optics, TraceSettings
@@ -65,7 +65,7 @@ def _trace_surfaces(medium, beam: Beam, optics: Optics, settings: TraceSettings)
     if optics.n_outside is not None:
         status = enter_from(dirs, n_entry, float(optics.n_outside))
     entered = dirs.copy()
-    live = np.flatnonzero(status == 0)
+    live = np.flatnonzero(status == ACTIVE)
     out = medium.trace_surfaces(beam.origins[live], dirs[live], n_wall=optics.n_wall, n_poly=optics.n_poly,
                                 max_events=settings.max_events, fresnel=settings.fresnel, seed=optics.seed,
                                 ray_ids=beam.ray_ids[live])
