@@ -212,20 +212,27 @@ def build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG,
             L0, L1, g = ray_group(seed, M, k, L)
             if math.isnan(L0):
                 continue
-            x = min(L - L0, L1 - L) / M[RRAMP]
-            x = min(max(x, 0.0), 1.0)
-            taper = x * x * (3.0 - 2.0 * x)
-            if taper <= 0.0:
-                continue
-            rays[nr, 0] = row * c
-            rays[nr, 1] = 0.5 * W * taper
-            rays[nr, 2] = L0
-            rays[nr, 3] = L1
-            rays[nr, 4] = k
-            rays[nr, 5] = g
-            rays[nr, 6] = taper
-            nr += 1
+            nr = add_ray_row(M, L, L0, L1, row * c, k, g, W, rays, nr)
     return nr
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def add_ray_row(M, L, L0, L1, t_r, k, g, W, rays, nr):
+    """Append the row (t_r, b, L0, L1, k, slot, taper) of a ray group active at L to ``rays``
+    when its taper there is positive; returns the number of rows."""
+    x = min(L - L0, L1 - L) / M[RRAMP]
+    x = min(max(x, 0.0), 1.0)
+    taper = x * x * (3.0 - 2.0 * x)
+    if taper <= 0.0 or nr >= rays.shape[0]:
+        return nr
+    rays[nr, 0] = t_r
+    rays[nr, 1] = 0.5 * W * taper
+    rays[nr, 2] = L0
+    rays[nr, 3] = L1
+    rays[nr, 4] = k
+    rays[nr, 5] = g
+    rays[nr, 6] = taper
+    return nr + 1
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")

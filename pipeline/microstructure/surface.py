@@ -29,12 +29,12 @@ from numba import njit
 
 from .. import rng as _rng
 from ..rng import uniform
-from ._constants import (PITCH, RAYS, RHEIGHT, RJIT, RLEN, RLEN_SD, RRAMP, RSER, RSPACE, RSQUEEZE, SCALE, SHAPE, T0,
+from ._constants import (PITCH, RAYS, RHEIGHT, RJIT, RLEN, RLEN_SD, RSER, RSPACE, RSQUEEZE, SCALE, SHAPE, T0,
                          VWALL)
 from ._distortion import pull_back
 from ._lattice import chain_interval
 from ._ray_cells import group_span, ray_band_width, ray_cell_phase, ray_group, ray_row, ray_slice_tables
-from ._slice import _squeeze_and_classify, _vessel_phase, vessel_outline, vessel_walls
+from ._slice import _squeeze_and_classify, _vessel_phase, add_ray_row, vessel_outline, vessel_walls
 
 from ._surface_cells import _ellipses, _polygon, new_cache, node_cached  # noqa: F401
 
@@ -104,20 +104,10 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_p, vessels, nv, vbo
                 gb = abs(pT - t_r)
                 np_ = _row(P, np_, P_BAND, k, 0, 0, 0, gb, max(dist_l, gb / (lam_p + rt[R_BAND])))
                 continue
-            else:
-                x = min(Ls - L0, L1 - Ls) / M[RRAMP]
-                x = min(max(x, 0.0), 1.0)
-                taper = x * x * (3.0 - 2.0 * x)
-                if taper > 0.0 and nr < 16:
-                    rays[nr, 0] = t_r
-                    rays[nr, 1] = 0.5 * W * taper
-                    rays[nr, 2] = L0
-                    rays[nr, 3] = L1
-                    rays[nr, 4] = k
-                    rays[nr, 5] = g
-                    rays[nr, 6] = taper
-                    b = rays[nr, 1]
-                    nr += 1
+            before = nr
+            nr = add_ray_row(M, Ls, L0, L1, t_r, k, g, W, rays, nr)
+            if nr > before:
+                b = rays[before, 1]
             gb = abs(pT - t_r) - b
             np_ = _row(P, np_, P_BAND, k, 0, 0, 0, gb, abs(gb) / (lam_p + rt[R_BAND]))
         np_ = _row(P, np_, P_REACH, 0, 0, 0, 0, c, c / (lam_p + rt[R_BAND]))

@@ -323,16 +323,10 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                             Pb[i, q] = P[i, q]
             lo = klo * LATTICE
             hi = khi * LATTICE
-            if not _switched(Pa, na, Pb, nb, key):
-                npass += 1
-                s = hi
-                med = 1 - med
-                skip[0] = 0.0
-                continue
             # The normal: the gradient of the switching primitive at the crossing.
+            ok = _switched(Pa, na, Pb, nb, key)
             for q in range(3):
                 base[q] = X[q] + hi * d[q]
-            ok = True
             g0 = _g_of(base, e, 0.0, lq, ctx, P, key, cache)
             ne += 1
             for q in range(3):
@@ -349,7 +343,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                 if not (nrm[q] == nrm[q]):
                     ok = False
             s2 = math.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2])
-            if not ok or s2 == 0.0:
+            if not ok or s2 == 0.0:  # no surface to refract on (none listed): counted, passed
                 npass += 1
                 s = hi
                 med = 1 - med
