@@ -1,6 +1,8 @@
-"""Numba kernel of the exact tracer on the wood's own surfaces (docs/methods.md#the-exact-method).
+"""Numba kernel of the exact tracer on analytic surfaces (docs/methods.md#the-exact-method): the
+generated wood's own and the reference lattices', one march for both.
 
-Each point evaluation (:mod:`pipeline.microstructure.surface`) gives the
+Each point evaluation (:func:`surface_at`: :mod:`pipeline.microstructure.surface` for wood,
+:mod:`pipeline.optics._lattice_rows` for a lattice, chosen by the context's type) gives the
 phase and the primitives near the point, each with its signed function g and
 a proven clearance.  A step may never let two primitives switch, nor pass a
 regime surface (a ray band, a vessel outline, a ply) on the bounds of one
@@ -9,7 +11,8 @@ primitive A (its negative set, convex in the pulled-back coordinates, meets a
 line in one interval) A may switch once, and the primitive crossed last is left
 out of the clearance (the ray is leaving it).  A step whose end is in the other phase brackets a crossing,
 refined by regula falsi on the switching primitive's g to ``tol``; its normal
-is the gradient of g by central differences of step ``h_grad``.  A clearance
+is the gradient of g (:func:`surface_normal`: for wood by central differences of step
+``h_grad``, for a lattice its circle's or line's own).  A clearance
 below ``hit`` means the ray stands on a surface: the phase is sampled
 ``2·hit`` ahead.
 """
@@ -17,18 +20,58 @@ below ``hit`` means the ray stands on a surface: the phase is sampled
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import overload
 
 from ..microstructure.surface import MAX_PRIMS, N_COLS, P_BAND, P_PLY, P_REACH, P_VESSEL_OUT, evaluate_at
+from ._lattice_rows import CONTEXT_LEN, lattice_normal, lattice_rows
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
 
 NEEDS_REGION = NEEDS_CHUNK  # the ray left the precomputed region: the caller widens it and traces again
+# Tolerances [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are.
+HIT = 1e-9  # a clearance below this: the ray stands on a surface
+TOL = 1e-9  # regula falsi narrows a crossing to this before the lattice bisection
+
+
+def _is_lattice(ctx) -> bool:
+    return isinstance(ctx, types.BaseTuple) and len(ctx) == CONTEXT_LEN
+
+
+def surface_at(R, T, L, lq, ctx, P, cache, want):
+    """(phase, number of rows) of the medium of ``ctx`` at (R, T, L), its rows in ``P``: generated
+    wood (:func:`~pipeline.microstructure.surface.evaluate_at`) or a reference lattice
+    (:func:`~pipeline.optics._lattice_rows.lattice_rows`).  Chosen by the context's type when the
+    march compiles, so one kernel traces both."""
+    raise NotImplementedError("surface_at runs inside the march's Numba kernel only")
+
+
+@overload(surface_at)
+def _surface_at(R, T, L, lq, ctx, P, cache, want):
+    if _is_lattice(ctx):
+        return lambda R, T, L, lq, ctx, P, cache, want: lattice_rows(R, T, ctx, P)
+    return lambda R, T, L, lq, ctx, P, cache, want: evaluate_at(R, T, L, lq, ctx, P, cache, want)
+
+
+def surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e):
+    """(found, evaluations): the unit normal of primitive ``key`` at ``base`` into ``nrm``.  The
+    wood's is the central-difference gradient of its g (step ``h_grad``); a lattice's, its
+    circle's or face's own."""
+    raise NotImplementedError("surface_normal runs inside the march's Numba kernel only")
+
+
+@overload(surface_normal)
+def _surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e):
+    if _is_lattice(ctx):
+        return lambda base, lq, ctx, P, key, cache, h_grad, nrm, e: (lattice_normal(base[0], base[1], ctx, key, nrm),
+                                                                     0)
+    return lambda base, lq, ctx, P, key, cache, h_grad, nrm, e: _gradient(base, lq, ctx, P, key, cache, h_grad,
+                                                                          nrm, e)
 
 
 @njit(cache=True, nogil=True)
 def _g_of(X, d, s, lq, ctx, P, key, cache):
     """Signed function of primitive ``key`` at X + s·d (nan when it is not listed there)."""
-    ph, n = evaluate_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, key)
+    ph, n = surface_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, key)
     for i in range(n):
         if (P[i, 0] == key[0] and P[i, 1] == key[1] and P[i, 2] == key[2] and P[i, 3] == key[3]
                 and P[i, 4] == key[4]):
@@ -71,6 +114,27 @@ def _regime(kind):
     """Surfaces past which other primitives apply (a ray band, a vessel outline, a ply): the rows
     listed on one side say nothing of the other, so these are never stepped over blindly."""
     return kind == P_BAND or kind == P_VESSEL_OUT or kind == P_PLY
+
+
+@njit(cache=True, nogil=True)
+def _gradient(base, lq, ctx, P, key, cache, h_grad, nrm, e):
+    """(found, evaluations): the central-difference gradient of primitive ``key``'s g at ``base``
+    (one-sided where the primitive is not listed on a side), normalised into ``nrm``."""
+    g0 = _g_of(base, e, 0.0, lq, ctx, P, key, cache)
+    ok = True
+    for q in range(3):
+        e[0] = 0.0
+        e[1] = 0.0
+        e[2] = 0.0
+        e[q] = 1.0
+        gp = _g_of(base, e, h_grad, lq, ctx, P, key, cache)
+        gm = _g_of(base, e, -h_grad, lq, ctx, P, key, cache)
+        nrm[q] = (gp - gm) / (2.0 * h_grad)
+        if not (nrm[q] == nrm[q]):  # a side where the primitive is not listed: one-sided
+            nrm[q] = (gp - g0) / h_grad if gp == gp else (g0 - gm) / h_grad
+        if not (nrm[q] == nrm[q]):
+            ok = False
+    return ok, 7
 
 
 LATTICE = 2.0 ** -40  # [µm] crossings land on this lattice along a segment (~1e-12 µm)
@@ -122,7 +186,7 @@ def _find(P, n, key):
 
 
 @njit(cache=True, nogil=True)
-def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fseed, ctx,
+def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fseed, ctx,
                hit, tol, h_grad, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache):
     """Trace rays from ``pos`` (N, 3) [µm] with unit ``dirs`` through the wood between T = 0 and
     T = ``thickness``; writes the exit point and direction, status, interfaces, path length [µm],
@@ -162,13 +226,13 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
         length = 0.0
         st = 0
         s = 0.0
-        med, n = evaluate_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
+        med, n = surface_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
         ne += 1
         if med == 255:
             st = NEEDS_REGION
         t_face = _face(X, d, thickness)
         while st == 0:
-            ph, n = evaluate_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, every)
+            ph, n = surface_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, every)
             ne += 1
             if ph == 255:
                 st = NEEDS_REGION
@@ -200,7 +264,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             at_face = s_end >= t_face
             if at_face:
                 s_end = t_face
-            phb, nb = evaluate_at(X[0] + s_end * d[0], X[1] + s_end * d[1], X[2] + s_end * d[2], lq, ctx, Pb, cache,
+            phb, nb = surface_at(X[0] + s_end * d[0], X[1] + s_end * d[1], X[2] + s_end * d[2], lq, ctx, Pb, cache,
                                   every)
             ne += 1
             if phb == 255:
@@ -255,7 +319,7 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                         mid = 0.5 * (lo + hi)
                     if mid <= lo or mid >= hi:
                         break
-                    phm, nm = evaluate_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache,
+                    phm, nm = surface_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache,
                                           key)
                     ne += 1
                     i = _find(P, nm, key)
@@ -281,14 +345,14 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             # in the new phase, whatever bracket led there.
             klo = math.floor(lo / LATTICE)
             khi = max(math.ceil(hi / LATTICE), klo + 1.0)
-            pl, na = evaluate_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
+            pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
                                  X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
-            ph_hi, nb = evaluate_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
+            ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
                                     X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
             ne += 2
             if pl != med:
                 klo = math.floor(s / LATTICE)
-                pl, na = evaluate_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
+                pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
                                      X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
                 ne += 1
             if ph_hi == med:
@@ -301,12 +365,12 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
                     s = khi * LATTICE
                     continue
                 khi = max(math.ceil(s_end / LATTICE), klo + 1.0)
-                ph_hi, nb = evaluate_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
+                ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
                                         X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
                 ne += 1
             while khi - klo > 1.0:
                 kmid = math.floor(0.5 * (klo + khi))
-                phm, nm = evaluate_at(X[0] + kmid * LATTICE * d[0], X[1] + kmid * LATTICE * d[1],
+                phm, nm = surface_at(X[0] + kmid * LATTICE * d[0], X[1] + kmid * LATTICE * d[1],
                                       X[2] + kmid * LATTICE * d[2], lq, ctx, P, cache, every)
                 ne += 1
                 if phm == med:
@@ -327,21 +391,9 @@ def trace_wood(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresne
             ok = _switched(Pa, na, Pb, nb, key)
             for q in range(3):
                 base[q] = X[q] + hi * d[q]
-            g0 = _g_of(base, e, 0.0, lq, ctx, P, key, cache)
-            ne += 1
-            for q in range(3):
-                e[0] = 0.0
-                e[1] = 0.0
-                e[2] = 0.0
-                e[q] = 1.0
-                gp = _g_of(base, e, h_grad, lq, ctx, P, key, cache)
-                gm = _g_of(base, e, -h_grad, lq, ctx, P, key, cache)
-                ne += 2
-                nrm[q] = (gp - gm) / (2.0 * h_grad)
-                if not (nrm[q] == nrm[q]):  # a side where the primitive is not listed: one-sided
-                    nrm[q] = (gp - g0) / h_grad if gp == gp else (g0 - gm) / h_grad
-                if not (nrm[q] == nrm[q]):
-                    ok = False
+            found, k = surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e)
+            ne += k
+            ok = ok and found
             s2 = math.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2])
             if not ok or s2 == 0.0:  # no surface to refract on (none listed): counted, passed
                 npass += 1

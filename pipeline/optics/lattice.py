@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _exact as _X
-from ..params import ParameterError
+from ._lattice_rows import lattice_context
+from ._surface_march import HIT, TOL, march
 from .interface import REFLECTED, TRANSMITTED
 from .rays import RayResult
 from .settings import settings_for
@@ -88,7 +89,8 @@ class Lattice:
         return LatticeSource(self, thickness_um=thickness_um, voxel_um=voxel_um, chunks=chunks)
 
     def slab(self, thickness_um: float) -> "LatticeSlab":
-        """The lattice, ``thickness_um`` thick along T, as a surface medium (method ``exact``)."""
+        """The lattice, ``thickness_um`` thick along T, as a surface medium (method ``exact``,
+        traced by the march that traces generated wood)."""
         return LatticeSlab(self, thickness_um)
 
     def trace(self, origins_um, direction, *, n_wall: float, n_poly: float, thickness_um: float,
@@ -117,7 +119,8 @@ class Lattice:
         ray-circle or ray-line intersection with the normal of that circle or
         line; Snell's law, or total internal reflection
         (:math:`\\sin^2\\theta_t \\ge 1`), in 3-D.  Forwards, the same as
-        :func:`pipeline.optics.trace.trace` of :meth:`slab`.
+        :func:`pipeline.optics.trace.trace` of :meth:`slab`, which the surface march traces:
+        this is the independent reference it is tested against.
         """
         pos = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
         pos[:, 1] = thickness_um if backwards else 0.0
@@ -149,24 +152,39 @@ class Lattice:
 
 @dataclass(frozen=True)
 class LatticeSlab:
-    """A :class:`Lattice` between T = 0 and T = ``thickness_um`` as a surface medium: every
-    wall is a circle or a line of the R-T section, extruded along L (method ``exact``)."""
+    """A :class:`Lattice` between T = 0 and T = ``thickness_um`` as a surface medium (method
+    ``exact``), traced by the march that traces generated wood
+    (:mod:`pipeline.optics._surface_march`): each wall a circle or a line of the R-T section,
+    extruded along L, listed as rows with their distances (:mod:`pipeline.optics._lattice_rows`).
+    :meth:`Lattice.trace` is the independent reference it is tested against."""
 
     lattice: Lattice
     thickness_um: float
+    hit: float = HIT
+    tol: float = TOL
 
     def entry_phase(self, origins_um) -> np.ndarray:
         pos = np.asarray(origins_um, np.float64).reshape(-1, 3)
         return np.array([self.lattice.phase([r], [0.0])[0, 0] for r in pos[:, 0]], np.uint8)
 
     def trace_surfaces(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int,
-                       fresnel: bool = False, seed: int = 0, ray_ids=None) -> dict:
-        if fresnel:
-            raise ParameterError("`fresnel` is not available on the reference lattices: trace them without it")
-        pos = np.array(origins_um, np.float64, copy=True)
+                       fresnel: bool = False, seed: int = 0, ray_ids=None, log_events: int = 0) -> dict:
+        lat = self.lattice
+        pos = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
         pos[:, 1] = 0.0
-        return self.lattice._run(pos, np.ascontiguousarray(directions, np.float64), n_wall, n_poly,
-                                 self.thickness_um, max_events)
+        n = len(pos)
+        ids = np.arange(n, dtype=np.int64) if ray_ids is None else np.asarray(ray_ids, np.int64)
+        out = {"position": np.empty((n, 3)), "direction": np.empty((n, 3)), "status": np.empty(n, np.int64),
+               "events": np.empty(n, np.int64), "path": np.empty(n), "evaluations": np.empty(n, np.int64),
+               "passes": np.empty(n, np.int64), "medium": np.empty(n, np.uint8)}
+        log = np.zeros((n, log_events, 12) if log_events else (0, 0, 12))
+        march(pos, np.ascontiguousarray(directions, np.float64), ids, float(self.thickness_um), float(n_wall),
+              float(n_poly), int(max_events), bool(fresnel), np.uint64(seed),
+              lattice_context(lat.geo, lat.kind, lat.seed), self.hit, self.tol, 0.0, 1.0, *out.values(), log,
+              np.zeros(1))
+        if log_events:
+            out["log"] = log
+        return out
 
 
 def tube_lattice(pitch_um: float, r_outer_um: float, wall_um: float, *, packing: str = "square",

@@ -122,13 +122,14 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
 
     from ..analysis import fwhm, haze
     from .rays import square_beam
-    from .settings import Optics, settings_for, traced_voxel_um
+    from .settings import Optics, traced_voxel_um
     from .trace import trace
 
     voxel_um = traced_voxel_um(voxel_um, settings)
     beam = square_beam(n_rays, beam_um, seed=seed)
     optics = Optics(n_wall, n_poly)
-    ex = trace(lattice.slab(thickness_um), beam, optics, settings_for("exact", max_events=100_000))
+    # The independent exact tracer (ray-circle and ray-line roots), which ``exact`` matches ray by ray.
+    ex = lattice.trace(beam.origins, beam.unit_directions(), n_wall=n_wall, n_poly=n_poly, thickness_um=thickness_um)
     t0 = time.perf_counter()
     vx = trace(lattice.source(thickness_um=thickness_um, voxel_um=voxel_um, chunks=chunks), beam, optics, settings)
     elapsed = time.perf_counter() - t0

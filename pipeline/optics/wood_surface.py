@@ -20,12 +20,10 @@ import numpy as np
 from ..microstructure.region import context_tuple, phases, region_context
 from ..microstructure.surface import new_cache
 from ..params import WoodParams
-from ._surface_march import NEEDS_REGION, trace_wood
+from ._surface_march import HIT, NEEDS_REGION, TOL, march
 
-# Internal steps and tolerances [µm] (docs/methods.md#the-exact-method); halving them leaves the
-# rays as they are (crossings land on a fixed lattice).  H_GRAD is part of the normal's definition.
-HIT = 1e-9  # a clearance below this: the ray stands on a surface
-TOL = 1e-9  # regula falsi narrows a crossing to this before the lattice bisection
+# Internal steps [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are
+# (crossings land on a fixed lattice).  H_GRAD is part of the normal's definition.
 H_GRAD = 1e-6  # central-difference step of a normal
 STEP_SCALE = 1.0  # fraction of the clearance stepped (1: the whole proven clearance)
 NAMES = ("position", "direction", "status", "events", "path", "evaluations", "passes", "medium")
@@ -81,10 +79,9 @@ class WoodSurface:
 
             def run(lo, hi, pos=pos0[todo], dirs=dirs0[todo], rid=ids[todo], ctx=ctx, res=res, log=log):
                 # Rays are independent: slices of the beam run side by side (the kernel releases the GIL).
-                trace_wood(pos[lo:hi], dirs[lo:hi], rid[lo:hi], self.thickness_um, float(n_wall), float(n_poly),
-                           int(max_events), bool(fresnel), np.uint64(seed), ctx, self.hit, self.tol, self.h_grad,
-                           self.step_scale, *(a[lo:hi] for a in res), log[lo:hi] if log_events else log,
-                           new_cache())
+                march(pos[lo:hi], dirs[lo:hi], rid[lo:hi], self.thickness_um, float(n_wall), float(n_poly),
+                      int(max_events), bool(fresnel), np.uint64(seed), ctx, self.hit, self.tol, self.h_grad,
+                      self.step_scale, *(a[lo:hi] for a in res), log[lo:hi] if log_events else log, new_cache())
 
             parts = min(self.threads, max(1, k // 16))
             cuts = np.linspace(0, k, parts + 1).astype(int)
