@@ -1,5 +1,5 @@
-"""One trace of a sample, as ``twray trace`` runs it: the medium (a user volume, or generated
-wood of a preset), a square beam, the optics and a method; traced to a number of rays or to a
+"""One trace of a sample, as ``twray trace`` runs it: the medium (a user volume, generated
+wood of a preset or a reference lattice), a square beam, the optics and a method; traced to a number of rays or to a
 precision; summarised, and its rays written as a dataset."""
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from .analysis import Target, summarize
 from .optics.interface import STATUS_NAMES
 from .optics.media import wood_medium
 from .optics.rays import square_beam
+from .optics.references import Reference, reference_medium
 from .optics.settings import Optics, TraceSettings, traced_voxel_um
 from .optics.sources import ArraySource, load_volume
 from .optics.trace import trace_to_target
@@ -29,7 +30,7 @@ from .provenance import provenance_attrs
 
 @dataclass(frozen=True)
 class TraceJob:
-    """What ``twray trace`` is asked: exactly one of ``volume`` (a path) and ``wood``.
+    """What ``twray trace`` is asked: exactly one of ``volume`` (a path), ``wood`` and ``reference``.
 
     Lengths in µm; ``incidence_deg`` the beam's angles (R, L) in air, None for a
     beam along +T already inside the sample; ``target`` traces ``rays`` first,
@@ -44,6 +45,7 @@ class TraceJob:
     seed: int
     volume: str | None = None
     wood: WoodParams | None = None
+    reference: Reference | None = None  # a reference lattice of exact optics
     thickness_um: float | None = None
     beam_origin_um: tuple | None = None
     incidence_deg: tuple | None = None
@@ -75,6 +77,12 @@ def medium_of(job: TraceJob):
         centre = (nr * job.voxel_um / 2.0, nl * job.voxel_um / 2.0)
         # A user volume's cell pitch is unknown: the estimate assumes birch's.
         thickness_um, pitch, wall = nt * job.voxel_um, build_params("birch").fibre_diameter_um, None
+    elif job.reference is not None:
+        ref = job.reference
+        medium = reference_medium(ref, seed=job.seed, thickness_um=job.thickness_um, voxel_um=job.voxel_um,
+                                  settings=job.settings)
+        centre = (0.0, 0.0)
+        thickness_um, pitch, wall = job.thickness_um, ref.pitch_um, ref.wall_um
     else:
         make_grid((1.0, job.thickness_um, 1.0), job.voxel_um, (0.0, 0.0, 0.0), job.wood)
         medium = wood_medium(job.wood, seed=job.seed, thickness_um=job.thickness_um, voxel_um=job.voxel_um,
@@ -116,14 +124,17 @@ def run(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:
                     "incidence_deg": list(job.incidence_deg or (0.0, 0.0)),
                     "seconds": time.perf_counter() - t0, "chunks_loaded": result.chunks_loaded})
     if not job.volume:  # the wood the trace needed, against what it read (none for surfaces)
-        summary["voxels_generated"] = (len(medium.distinct) * math.prod(medium.chunks)
-                                       if job.settings.medium_kind == "voxels" else 0)
+        chunks = 0
+        if job.settings.medium_kind == "voxels":
+            chunks = medium.generated if job.reference is not None else len(medium.distinct)
+        summary["voxels_generated"] = chunks * (math.prod(medium.chunks) if chunks else 0)
     return result, summary
 
 
 def job_inputs(job: TraceJob, centre) -> dict:
     """The resolved inputs of ``job`` (provenance of its rays dataset)."""
     return {"volume": job.volume, "params": None if job.wood is None else job.wood.to_dict(),
+            "reference": None if job.reference is None else job.reference.to_dict(),
             "thickness_mm": None if job.thickness_um is None else job.thickness_um / 1000.0,
             "voxel_um": job.voxel_um, "traced_voxel_um": job.traced_voxel_um, "delta_ri": job.optics.delta_ri,
             "ri_polymer": job.optics.n_poly, "rays": job.rays, "beam_um": job.beam_um,

@@ -436,3 +436,51 @@ def test_trace_exact_on_generated_wood_reads_no_voxels_and_a_volume_is_refused(t
                        "--delta-ri", "0.01")
     assert code == 2 and len(err.strip().splitlines()) == 1
     assert "--volume has voxels only: use --method accurate" in err
+
+
+def test_trace_a_reference_lattice_by_name_with_exact_and_with_a_voxel_method(tmp_path, capsys):
+    """``--reference`` traces a lattice of exact optics: ``exact`` gives what the independent exact
+    tracer gives on the same beam; a voxel method traces the lattice's voxelisation."""
+    from pipeline.analysis import summarize
+    from pipeline.optics.lattice import tube_lattice
+    from pipeline.optics.rays import square_beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.trace import trace
+
+    args = ["trace", "--reference", "tubes-square", "--pitch-um", "14.5", "--wall-um", "2", "--jitter", "0.1",
+            "--thickness-mm", "0.04", "--delta-ri", "0.03", "--rays", "300", "--beam-um", "80", "--seed", "4",
+            "--json"]
+    lat = tube_lattice(14.5, 7.25, 2.0, jitter=0.1, seed=4)
+    beam = square_beam(300, 80.0, seed=4)
+    code, stdout, err = run(capsys, *args, "--method", "exact", "--out", str(tmp_path / "r.nc"))
+    assert code == 0, err
+    s = json.loads(stdout)
+    ref = summarize(lat.trace(beam.origins, beam.unit_directions(), n_wall=1.52, n_poly=1.49, thickness_um=40.0),
+                    seed=4)
+    assert s["method"] == "exact" and s["voxels_generated"] == 0 and s["n_rays"] == 300
+    for k in ("fwhm_r_deg", "haze", "n_transmitted"):
+        assert s[k] == pytest.approx(ref[k], rel=1e-6), k
+    assert s["fwhm_r_deg"] > 1.0
+    import xarray as xr
+
+    with xr.open_dataset(tmp_path / "r.nc") as ds:
+        assert json.loads(ds.attrs["inputs"])["reference"]["name"] == "tubes-square"
+    code, stdout, err = run(capsys, *args, "--method", "fast", "--voxel-um", "0.5")
+    assert code == 0, err
+    voxels = trace(lat.source(thickness_um=40.0, voxel_um=0.5), beam, Optics(1.52, 1.49), settings_for("fast"))
+    assert json.loads(stdout)["fwhm_r_deg"] == summarize(voxels, seed=4)["fwhm_r_deg"]
+
+
+@pytest.mark.parametrize("extra, message", [
+    ([], "`pitch_um` is required with a reference scene (tubes-hex), e.g. --pitch-um"),
+    (["--pitch-um", "14", "--wall-um", "8", "--r-outer-um", "7"], "`wall_um` must be in (0, r_outer_um = 7.0]"),
+    (["--pitch-um", "14", "--wall-um", "2", "--jitter", "0.5"], "`jitter` must be in [0, 0.25]"),
+    (["--pitch-um", "-1", "--wall-um", "2"], "`pitch_um` must be > 0 µm, got pitch_um=-1"),
+])
+def test_a_bad_reference_is_one_line_naming_the_field(capsys, extra, message):
+    code, _, err = run(capsys, "trace", "--reference", "tubes-hex", "--thickness-mm", "0.02", "--delta-ri", "0.01",
+                       *extra)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and message in err, err
+    code, _, err = run(capsys, "trace", "--preset", "birch", "--thickness-mm", "0.02", "--delta-ri", "0.01",
+                       "--wall-um", "2")
+    assert code == 2 and "`--wall-um` applies to --reference, not --preset" in err

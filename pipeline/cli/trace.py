@@ -16,10 +16,18 @@ def add_trace(sub):
     src.add_argument("--volume", help="user volume: .npy, .zarr or a folder of TIFF slices "
                                       "(axes R, T, L; 1 = wall)")
     src.add_argument("--preset", help="generate wood lazily from this species preset")
+    src.add_argument("--reference", help="a reference lattice of exact optics: tubes-square, tubes-hex, cells-hex "
+                                         "or cells-square (with --pitch-um and --wall-um)")
+    p.add_argument("--pitch-um", default=None, help="site spacing of a --reference lattice [µm]")
+    p.add_argument("--wall-um", default=None, help="wall thickness of a --reference lattice [µm]")
+    p.add_argument("--r-outer-um", default=None,
+                   help="outer radius of a tube --reference [µm] (default half the pitch: touching tubes)")
+    p.add_argument("--jitter", default="0", help="sites of a --reference moved by up to this fraction of the "
+                                                 "pitch, in [0, 0.25] (default 0)")
     p.add_argument("--config", help="YAML file of wood parameters (with --preset)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one wood parameter (with --preset), e.g. --set wall_thickness_um=4 [µm]")
-    p.add_argument("--thickness-mm", help="sample thickness along T [mm] (with --preset)")
+    p.add_argument("--thickness-mm", help="sample thickness along T [mm] (with --preset or --reference)")
     p.add_argument("--voxel-um", default="0.5", help="voxel size [µm]")
     p.add_argument("--delta-ri", required=True, help="RI of the wall minus RI of the polymer")
     p.add_argument("--ri-polymer", default="1.49", help="RI of the polymer (default 1.49)")
@@ -30,7 +38,8 @@ def add_trace(sub):
                    help="beam direction in air as angles R,L [degree] of its projections on the R-T and "
                         "L-T planes from +T (default 0,0: perpendicular to the L-R face); the beam "
                         "refracts into the sample, and haze is measured from this direction")
-    p.add_argument("--method", default="accurate", help="paper, fast or accurate")
+    p.add_argument("--method", default="accurate", help="paper, fast, accurate or exact (generated wood and "
+                                                        "references only)")
     p.add_argument("--exit", default="internal", help="angles inside the sample (internal) or in air")
     p.add_argument("--fresnel", action="store_true", help="partial Fresnel reflection")
     p.add_argument("--step-vox", default=None, help="paper marching step [voxels] (default 2)")
@@ -53,6 +62,7 @@ def add_trace(sub):
 
 
 def cmd_trace(args) -> int:
+    from ..optics.references import reference
     from ..optics.settings import METHODS, Optics, check_method, settings_for
     from ..trace_job import TraceJob, check_rays_out, job_inputs, medium_of, run, strict_json, write_rays
 
@@ -80,17 +90,29 @@ def cmd_trace(args) -> int:
     elif args.volume and METHODS.get(args.method) == "voxels":
         changes["refine"] = 1  # a user volume is traced on its own voxels
     settings = settings_for(check_method(args.method), **changes)
-    wood = thickness_um = None
+    wood = thickness_um = ref = None
+    lattice_args = {"--pitch-um": args.pitch_um, "--wall-um": args.wall_um, "--r-outer-um": args.r_outer_um,
+                    "--jitter": None if args.jitter == "0" else args.jitter}
+    if not args.reference and any(v is not None for v in lattice_args.values()):
+        given = next(k for k, v in lattice_args.items() if v is not None)
+        raise ParameterError(f"`{given}` applies to --reference, not --{'volume' if args.volume else 'preset'}")
     if args.volume:
         if args.thickness_mm or args.overrides or args.config:
             raise ParameterError("`--thickness-mm`, `--set` and `--config` apply to --preset, not --volume")
     else:
         if args.thickness_mm is None:
-            raise ParameterError("`--thickness-mm` is required with --preset")
+            raise ParameterError(f"`--thickness-mm` is required with --{'preset' if args.preset else 'reference'}")
         thickness_um = number(args.thickness_mm, "thickness_mm") * 1000.0
         if not thickness_um > 0:
             raise ParameterError(f"`thickness_mm` must be > 0, got thickness_mm={thickness_um / 1000:g}")
-        wood = build_params(args.preset, args.config, parse_set(args.overrides))
+        if args.reference:
+            if args.overrides or args.config:
+                raise ParameterError("`--set` and `--config` apply to --preset, not --reference")
+            ref = reference(args.reference, pitch_um=_optional(args.pitch_um, "pitch_um"),
+                            wall_um=_optional(args.wall_um, "wall_um"),
+                            r_outer_um=_optional(args.r_outer_um, "r_outer_um"), jitter=number(args.jitter, "jitter"))
+        else:
+            wood = build_params(args.preset, args.config, parse_set(args.overrides))
     origin = None
     if args.beam_origin_um is not None:
         parts = args.beam_origin_um.split(",")
@@ -98,7 +120,7 @@ def cmd_trace(args) -> int:
             raise ParameterError(f"`beam_origin_um` must be R,L [µm], got {args.beam_origin_um!r}")
         origin = tuple(number(v, "beam_origin_um") for v in parts)
     job = TraceJob(settings=settings, optics=optics, rays=rays, beam_um=beam_um, voxel_um=voxel,
-                   seed=optics.seed, volume=args.volume, wood=wood, thickness_um=thickness_um,
+                   seed=optics.seed, volume=args.volume, wood=wood, reference=ref, thickness_um=thickness_um,
                    beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target)
     medium, centre, est = medium_of(job)
     limits.check(est, what=f"`trace` of {rays if target is None else target.max_rays} rays", yes=args.yes,
@@ -119,6 +141,10 @@ def cmd_trace(args) -> int:
               f"haze {100 * summary['haze']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}], "
               f"{summary['seconds']:.1f} s{met}")
     return 0
+
+
+def _optional(text, field):
+    return None if text is None else number(text, field)
 
 
 def _trace_target(args, rays: int):

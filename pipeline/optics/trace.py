@@ -83,15 +83,13 @@ def _trace_surfaces(medium, beam: Beam, optics: Optics, settings: TraceSettings)
         full = np.zeros((n,) + arr.shape[1:], arr.dtype)
         full[live] = arr
         extras[name] = full
-    exit_dirs, incident = direction, None
+    exit_dirs, incident = direction, entered
     if settings.exit == "air":
         done = status == TRANSMITTED
         exit_dirs, tir = leave_into_air(direction, np.where(medium_end == 1, optics.n_wall, optics.n_poly), done)
         status[done & tir] = TIR_EXIT
         incident, blocked = leave_into_air(entered, n_entry, np.ones(n, bool))
         incident[blocked] = np.nan
-    elif optics.n_outside is not None:
-        incident = entered
     return RayResult(position, direction, exit_dirs, status, events, path, np.zeros((n, 3), np.int64), settings, 0,
                      incident, extras=extras)
 
