@@ -126,6 +126,17 @@ def render(doc: dict) -> str:
                f"the same, {f['rays_within_1e-10_rad']} within 1e-10 rad, {f['rays_same_interfaces']} with the same "
                f"interfaces; the largest change {f['largest_change_rad']:.2g} rad; FWHM_R {f['fwhm_r_deg'][0]:.3f}° and "
                f"{f['fwhm_r_deg'][1]:.3f}°."]
+        lat = e.get("lattices")
+        if lat:
+            md += ["", f"The reference lattices with `exact` (the same march) beside the independent exact tracer: "
+                   f"{lat['rays']} rays × {lat['thickness_um']:g} µm, pitch {lat['pitch_um']:g} µm, wall "
+                   f"{lat['wall_um']:g} µm, jitter {lat['jitter']:g}, warm, one core:", "",
+                   "| reference | interfaces/ray | µs/interface exact | µs/interface independent | evaluations/interface "
+                   "| rays within 1e-9 rad | same interfaces |", "|---|---|---|---|---|---|---|"]
+            for r in lat["rows"]:
+                md.append(f"| {r['reference']} | {r['interfaces_per_ray']:.1f} | {r['us_per_interface_exact']:.1f} | "
+                          f"{r['us_per_interface_independent']:.2f} | {r['evaluations_per_interface']:.1f} | "
+                          f"{r['rays_within_1e-9_rad']} | {r['rays_same_interfaces']} |")
     else:
         md.append("Not run (`make bench-exact`).")
     c = _get(doc, "camera", "figure5")

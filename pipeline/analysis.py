@@ -49,6 +49,8 @@ def _cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 1
     n = x.size
 
     def nll(m, s):
+        if 2.0 * s > 700.0:  # γ beyond any angle (e^350 degree): a step the line search must shorten
+            return math.inf
         return float(np.sum(np.log((x - m) ** 2 + math.exp(2 * s)))) - n * s
 
     f = nll(loc, log_g)

@@ -133,11 +133,11 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
         if s.target is not None:  # traced to a precision: at most its cap of rays
             s = dataclasses.replace(s, rays=s.target.max_rays)
         voxel = s.trace_voxel_um
-        if s.settings.medium_kind == "voxels":  # a surface method generates no wood
+        if s.settings.medium_kind == "voxels" and s.wood is not None:  # surfaces and lattices store no wood
             key = (repr(s.wood), s.seed, voxel)
             woods[key] = max(woods.get(key, 0.0), wood_voxels(s.beam_um, s.thickness_um, voxel))
         shard = trace_estimate(rays=min(s.rays, shard_rays), beam_um=s.beam_um, thickness_um=s.thickness_um,
-                               voxel_um=voxel, pitch_um=s.wood.fibre_diameter_um, method=s.settings.method,
+                               voxel_um=voxel, pitch_um=s.pitch_um, method=s.settings.method,
                                wood=False, store=True)
         n_shards = math.ceil(s.rays / shard_rays)
         # The scene's rays read back at once for its summary and Dataset.

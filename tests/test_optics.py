@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage, optimize, stats
 
-from pipeline.analysis import cauchy_fit, fwhm, haze, summarize
+from pipeline.analysis import cauchy_fit, fwhm, fwhm_ci, haze, summarize
 from pipeline.optics import _normals, _packing, interface
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.rays import Beam, square_beam
@@ -634,6 +634,16 @@ def test_cauchy_fit_recovers_a_known_lorentzian():
     loc, gamma = cauchy_fit(x)
     assert loc == pytest.approx(0.3, abs=0.05)
     assert fwhm(x) == pytest.approx(3.4, rel=0.03)
+
+
+def test_a_sample_mostly_of_one_angle_fits_a_width_near_zero_in_every_bootstrap():
+    """Straight walls deflect many rays by exactly the same angle: more than half the angles equal
+    drive γ towards 0, and no bootstrap resample may overflow on the way (it did once, as a
+    Newton step tried γ = e^400)."""
+    x = np.array([-0.8994, -0.4789] + [-0.3976] * 5 + [0.0] * 28 + [0.3633] * 4 + [0.4531])
+    assert fwhm(x) < 1e-6
+    lo, hi = fwhm_ci(x, n_boot=200, seed=3)
+    assert 0.0 <= lo <= hi < 1e-3
 
 
 def test_haze_counts_deviations_beyond_2_5_degrees():

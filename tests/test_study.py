@@ -1,6 +1,7 @@
 """Studies: YAML schema, cached incremental Dask graphs on a real LocalCluster, Datasets."""
 
 import json
+import re
 import os
 import time
 from pathlib import Path
@@ -450,3 +451,56 @@ def test_an_exact_study_equals_the_trace_command_and_generates_no_wood(tmp_path,
     cli = json.loads(capsys.readouterr().out)
     assert cli["fwhm_r_deg"] == float(ds.FWHM_R[0]) and cli["haze"] == float(ds.haze[0])
     assert cli["voxels_generated"] == 0
+
+
+def test_a_reference_lattice_study_traces_each_method_on_the_same_lattice(tmp_path, client, capsys):
+    """A study of a reference lattice (``reference:`` instead of ``preset``): `exact` equals
+    `twray trace --reference` of the same scene and reads no voxels; a voxel method traces the
+    lattice's voxelisation and stores no wood; varying the wall changes the lattice."""
+    text = REFERENCE_STUDY
+    study = tmp_path / "ref.yaml"
+    study.write_text(text)
+    out, _, plan = run(study, tmp_path / "c", tmp_path / "r", client)
+    assert not plan.micros
+    ds = xr.open_zarr(out, consolidated=False)
+    assert list(ds.wall.values) == [1.0, 3.0] and ds.wall.attrs["units"] == "um"
+    assert main(["trace", "--reference", "cells-hex", "--pitch-um", "14", "--wall-um", "3", "--jitter", "0.1",
+                 "--thickness-mm", "0.02", "--delta-ri", "0.02", "--rays", "40", "--beam-um", "25",
+                 "--method", "exact", "--seed", "3", "--json"]) == 0
+    cli = json.loads(capsys.readouterr().out)
+    assert cli["fwhm_r_deg"] == float(ds.FWHM_R[1]) and cli["haze"] == float(ds.haze[1])
+    assert float(ds.haze[1]) > float(ds.haze[0])  # thicker walls, more scattering
+    voxel = tmp_path / "ref-fast.yaml"
+    voxel.write_text(text.replace("method: exact", "method: fast"))
+    out, _, plan = run(voxel, tmp_path / "c", tmp_path / "r", client)
+    assert not plan.micros and not (tmp_path / "c" / "micro").exists()
+    fast = xr.open_zarr(out, consolidated=False)
+    assert fast.FWHM_R.shape == (2,) and not np.array_equal(fast.FWHM_R.values, ds.FWHM_R.values)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("seed: 3", "seed: 3\npreset: birch"), "`preset` and `reference` exclude each other"),
+    (("jitter: 0.1", "jitter: 0.1, wal_um: 2"), "unknown key `reference.wal_um`"),
+    (("parameter: wall_um", "parameter: vessels"), "`vary.parameter` of a reference scene must be one of"),
+    (("values: [1.0, 3.0]", "values: [1.0, 8.0]"), "value 8.0: `reference.wall_um` must be in (0, pitch_um / 2"),
+])
+def test_a_bad_reference_study_is_one_line_naming_the_field(tmp_path, edit, message):
+    study = tmp_path / "ref.yaml"
+    study.write_text(REFERENCE_STUDY.replace(*edit))
+    with pytest.raises(ParameterError, match=re.escape(message)):
+        load_study(study, scale="small")
+
+
+REFERENCE_STUDY = """\
+title: reference
+reference: {name: cells-hex, pitch_um: 14, wall_um: 2, jitter: 0.1}
+seed: 3
+realisations: 1
+rays: 400
+beam_um: 100
+voxel_um: 0.5
+delta_ri: 0.02
+thickness_mm: 0.2
+trace: {method: exact}
+vary: {parameter: wall_um, values: [1.0, 3.0]}
+"""

@@ -24,6 +24,8 @@ REFERENCES = {
     "cells-square": ("cells", "square"),
 }
 
+REFERENCE_FIELDS = ("pitch_um", "wall_um", "r_outer_um", "jitter")  # what a reference scene sets [µm, fraction]
+
 
 @dataclass(frozen=True)
 class Reference:

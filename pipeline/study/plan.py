@@ -142,10 +142,16 @@ def rays_record(scene: Scene, micro: str | None) -> dict:
 
     A voxel method's rays depend on the wood's chunks (``micro``) and on the
     sample and beam in the voxels traced; a surface method's on the wood itself
-    and the sample and beam in µm, and on no voxel size.
+    and the sample and beam in µm, and on no voxel size.  A reference lattice's
+    on the lattice, the sample and beam in µm and, for a voxel method, the voxel.
     """
     rec = {"stage": "rays", "version": versions.STAGES["rays"], "tracer": versions.tracer(scene.settings.method),
            "n_wall": scene.n_wall, "n_poly": scene.ri_polymer, "settings": scene.settings.to_dict()}
+    if scene.reference is not None:
+        voxel = scene.trace_voxel_um if scene.settings.medium_kind == "voxels" else None
+        return {**rec, "reference": scene.reference.to_dict(), "lattice_seed": scene.seed, "traced_voxel_um": voxel,
+                "thickness_um": scene.thickness_um,
+                "beam": {"width_um": scene.beam_um, "centre_um": [0.0, 0.0], "seed": scene.seed}}
     if micro is not None:
         n_t, width = beam_geometry(scene)
         return {**rec, "micro": micro, "thickness_vox": n_t,
@@ -185,7 +191,7 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
     for i, r in ((i, r) for i in range(len(study.scenes)) for r in range(study.realisations)):
         scene = study.realisation(i, r)
         mkey = None
-        if scene.settings.medium_kind == "voxels":  # only voxel methods read generated chunks
+        if scene.settings.medium_kind == "voxels" and scene.wood is not None:  # stored generated chunks
             mkey = cache_key(micro_record(scene))
             m = micros.setdefault(mkey, Micro(mkey, cache_dir / "micro" / f"{mkey}.zarr", scene))
             m.column = sorted(set(m.column) | _column(scene))
@@ -234,7 +240,7 @@ def describe_plan(plan: Plan) -> list[str]:
     for summ in plan.summaries:
         shards = plan.shards_of(summ)
         if shards[0].micro is None:
-            micro = "no voxels"
+            micro = "no stored voxels"
         else:
             m = plan.micros[shards[0].micro]
             n_col = len(m.column)

@@ -16,6 +16,11 @@ A study file declares a base scene and one parameter to vary::
     trace: {method: accurate, exit: internal, fresnel: false}
     vary: {parameter: delta_ri, values: [-0.03, -0.02, -0.01, 0.01, 0.02, 0.03]}
 
+Instead of ``preset`` and ``wood``, ``reference: {name: tubes-square, pitch_um: 14.5,
+wall_um: 2}`` traces a reference lattice of exact optics
+(:mod:`pipeline.optics.references`); ``vary`` may then vary its ``pitch_um``, ``wall_um``,
+``r_outer_um`` or ``jitter``.
+
 The numbers are the paper's scale; ``--scale small`` keeps the wood and
 divides the rays, thickness and beam, and traces at most 2 realisations (see
 :data:`SCALES`).  Every value is traced on the same realisations (realisation
@@ -35,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from ..analysis import Target
+from ..optics.references import REFERENCE_FIELDS, REFERENCES, Reference, reference
 from ..optics.settings import (Optics, TraceSettings, check_method, settings_for, traced_voxel_um,
                                wall_index)
 from ..params import (ParameterError, WOOD_FIELDS, WoodParams, check_voxel, coerce_field, load_preset,
@@ -48,7 +54,7 @@ SCALES = {
 # Wood realisations per value when a study file does not say (at most the scale's cap).
 REALISATIONS = 5
 
-_TOP = {"title", "description", "preset", "wood", "seed", "thickness_mm", "delta_ri",
+_TOP = {"title", "description", "preset", "wood", "reference", "seed", "thickness_mm", "delta_ri",
         "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary", "target_ci", "realisations"}
 _TRACE = {"method", "exit", "fresnel", "refine", "step_vox"}
 _SCENE_VARIABLES = {
@@ -64,7 +70,7 @@ class Scene:
     """One traced configuration: wood, sample, optics, beam and trace settings."""
 
     value: Any  # the varied parameter's value, as written in the study
-    wood: WoodParams
+    wood: WoodParams | None  # generated wood, or None for a reference lattice
     seed: int
     voxel_um: float
     thickness_um: float
@@ -75,6 +81,12 @@ class Scene:
     settings: TraceSettings
     target: Target | None = None  # trace to this precision: `rays` is then the first batch
     realisation: int = 0  # which wood of the study's realisations (seed = study seed + realisation)
+    reference: Reference | None = None  # a reference lattice instead of wood
+
+    @property
+    def pitch_um(self) -> float:
+        """The cell pitch of what is traced [µm] (interfaces per µm scale as its inverse)."""
+        return self.reference.pitch_um if self.reference is not None else self.wood.fibre_diameter_um
 
     @property
     def n_wall(self) -> float:
@@ -187,21 +199,25 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
     beam_um = number("beam_um", 150.0, "> 0 µm", lambda v: v > 0)
     voxel_um = number("voxel_um", 0.5, "> 0 µm", lambda v: v > 0)
 
-    preset = data.get("preset", "birch")
-    if not isinstance(preset, str):
-        fail(("preset",), f"`preset` must be a preset name, got {preset!r}")
-    try:
-        wood = load_preset(preset)
-    except ParameterError as exc:
-        raise ParameterError(where("preset") + str(exc)) from None
-    overrides = data.get("wood") or {}
-    if not isinstance(overrides, dict):
-        fail(("wood",), f"`wood` must be a mapping of microstructure parameters, got {overrides!r}")
-    for k, v in overrides.items():
-        if k not in WOOD_FIELDS:
-            fail(("wood", k), f"unknown microstructure parameter `wood.{k}` "
-                              f"(known: {', '.join(sorted(WOOD_FIELDS))})")
-        wood[k] = coerce_field(k, v, "")
+    ref_base = wood = overrides = None
+    if "reference" in data:
+        ref_base = _reference_fields(data, fail)
+    else:
+        preset = data.get("preset", "birch")
+        if not isinstance(preset, str):
+            fail(("preset",), f"`preset` must be a preset name, got {preset!r}")
+        try:
+            wood = load_preset(preset)
+        except ParameterError as exc:
+            raise ParameterError(where("preset") + str(exc)) from None
+        overrides = data.get("wood") or {}
+        if not isinstance(overrides, dict):
+            fail(("wood",), f"`wood` must be a mapping of microstructure parameters, got {overrides!r}")
+        for k, v in overrides.items():
+            if k not in WOOD_FIELDS:
+                fail(("wood", k), f"unknown microstructure parameter `wood.{k}` "
+                                  f"(known: {', '.join(sorted(WOOD_FIELDS))})")
+            wood[k] = coerce_field(k, v, "")
 
     trace = data.get("trace") or {}
     if not isinstance(trace, dict):
@@ -240,7 +256,11 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         fail(("vary",), f"`vary` must be a mapping with `parameter` and `values`, got {vary!r}")
     parameter = vary["parameter"]
     values = vary["values"]
-    if parameter not in _SCENE_VARIABLES and parameter not in WOOD_FIELDS:
+    if ref_base is not None and parameter not in _SCENE_VARIABLES and parameter not in REFERENCE_FIELDS:
+        fail(("vary", "parameter"), f"`vary.parameter` of a reference scene must be one of "
+                                    f"{', '.join(sorted(_SCENE_VARIABLES) + list(REFERENCE_FIELDS))}, "
+                                    f"got {parameter!r}")
+    if ref_base is None and parameter not in _SCENE_VARIABLES and parameter not in WOOD_FIELDS:
         fail(("vary", "parameter"), f"`vary.parameter` must be one of "
                                     f"{', '.join(sorted(_SCENE_VARIABLES))} or a microstructure "
                                     f"parameter, got {parameter!r}")
@@ -256,11 +276,13 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
     seen = set()
     for v in values:
         scene_vars = dict(base)
-        w = dict(wood)
-        if parameter in _SCENE_VARIABLES:
+        w = dict(wood or {})
+        if parameter in _SCENE_VARIABLES or ref_base is not None:
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 fail(("vary", "values"), f"`vary.values` of {parameter} must be numbers, got {v!r}")
-            scene_vars[parameter] = float(v)
+            v = float(v)
+            if parameter in _SCENE_VARIABLES:
+                scene_vars[parameter] = v
         else:
             if parameter == "laminate" and v in ("none", "None"):
                 v = None
@@ -274,28 +296,39 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
             fail(("vary", "values"), f"`vary.values` must not repeat a value, got {v!r} twice")
         seen.add(marker)
         thickness_um = scene_vars["thickness_mm"] * 1000.0 * f["thickness"]
-        if w.get("laminate") and "ply_thickness_um" not in overrides:
-            # Equal plies through the thickness (docs/methods.md#laminates).
-            w["ply_thickness_um"] = thickness_um / len(w["laminate"])
-        try:
-            params = validate(WoodParams(**w))
-        except ParameterError as exc:
-            raise ParameterError(where("wood") + f"value {v!r}: {exc}") from None
+        params = ref = None
+        if ref_base is not None:
+            fields = {**ref_base, **({parameter: v} if parameter in REFERENCE_FIELDS else {})}
+            try:
+                ref = reference(**fields)
+            except ParameterError as exc:
+                keys = ("vary", "values") if parameter in REFERENCE_FIELDS else ("reference",)
+                raise ParameterError(where(*keys) + f"value {v!r}: `reference.{str(exc).lstrip('`')}") from None
+            wall = ref.wall_um
+        else:
+            if w.get("laminate") and "ply_thickness_um" not in overrides:
+                # Equal plies through the thickness (docs/methods.md#laminates).
+                w["ply_thickness_um"] = thickness_um / len(w["laminate"])
+            try:
+                params = validate(WoodParams(**w))
+            except ParameterError as exc:
+                raise ParameterError(where("wood") + f"value {v!r}: {exc}") from None
+            try:
+                check_voxel(voxel_um, params)
+            except ParameterError as exc:
+                fail(("voxel_um",), str(exc))
+            wall = params.wall_thickness_um
         n_poly = scene_vars["ri_polymer"]
         try:
             Optics.of_delta(n_poly, scene_vars["delta_ri"]).validate()
         except ParameterError as exc:
             fail(("vary",), str(exc))
-        try:
-            check_voxel(voxel_um, params)
-        except ParameterError as exc:
-            fail(("voxel_um",), str(exc))
         if settings.method == "paper" and (settings.voxel.step_vox * traced_voxel_um(voxel_um, settings)
-                                           >= params.wall_thickness_um):
+                                           >= wall):
             # A step as wide as the wall jumps over walls (docs/methods.md#voxel-methods: the paper's step is half a wall).
             fail(("trace", "step_vox"), f"`trace.step_vox` must be smaller than the wall "
-                                        f"({params.wall_thickness_um:g} µm = "
-                                        f"{params.wall_thickness_um / traced_voxel_um(voxel_um, settings):g} "
+                                        f"({wall:g} µm = "
+                                        f"{wall / traced_voxel_um(voxel_um, settings):g} "
                                         f"voxels), got step_vox={settings.voxel.step_vox:g}")
         if thickness_um < voxel_um:
             fail(("thickness_mm",), f"`thickness_mm` must be at least one voxel at scale {scale}, "
@@ -303,7 +336,7 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         scenes.append(Scene(value=v, wood=params, seed=int(seed), voxel_um=voxel_um,
                             thickness_um=thickness_um, ri_polymer=n_poly,
                             delta_ri=scene_vars["delta_ri"], rays=n_rays,
-                            beam_um=beam_um * f["beam"], settings=settings, target=target))
+                            beam_um=beam_um * f["beam"], settings=settings, target=target, reference=ref))
 
     if parameter in _SCENE_VARIABLES:
         dimension, units, long_name = _SCENE_VARIABLES[parameter]
@@ -320,6 +353,29 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
     return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
                  parameter=parameter, dimension=dimension, units=units, long_name=long_name,
                  scenes=tuple(scenes), realisations=n_real)
+
+
+def _reference_fields(data: dict, fail) -> dict:
+    """The ``reference`` mapping of a study file, checked (it replaces ``preset`` and ``wood``)."""
+    for k in ("preset", "wood"):
+        if k in data:
+            fail((k,), f"`{k}` and `reference` exclude each other: a study traces wood or a reference lattice")
+    value = data["reference"]
+    if not isinstance(value, dict) or "name" not in value:
+        fail(("reference",), f"`reference` must be a mapping with `name` ({', '.join(REFERENCES)}), "
+                             f"`pitch_um` and `wall_um`, got {value!r}")
+    for k, v in value.items():
+        if k != "name" and k not in REFERENCE_FIELDS:
+            fail(("reference", k), f"unknown key `reference.{k}` (known: name, {', '.join(REFERENCE_FIELDS)})")
+        if k != "name" and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
+            fail(("reference", k), f"`reference.{k}` must be a number, got {v!r}")
+    out = {k: value.get(k) for k in REFERENCE_FIELDS}
+    out["jitter"] = out["jitter"] or 0.0
+    try:
+        reference(value["name"], **out)
+    except ParameterError as exc:
+        fail(("reference",), "`reference." + str(exc).lstrip("`"))
+    return {"name": value["name"], **out}
 
 
 def _target(value, n_rays: int, factor: float, fail) -> Target:
@@ -353,7 +409,7 @@ def with_rays(study: Study, rays: int) -> Study:
 def scene_record(scene: Scene) -> dict:
     """Canonical, JSON-ready description of a scene (for cache keys and provenance)."""
     out = dataclasses.asdict(scene)
-    out["wood"] = scene.wood.to_dict()
+    out["wood"] = None if scene.wood is None else scene.wood.to_dict()
     out["settings"] = scene.settings.to_dict()
     out["value"] = scene.value if not isinstance(scene.value, tuple) else list(scene.value)
     return out
