@@ -396,7 +396,7 @@ def test_relative_cache_and_results_are_the_clients_on_a_scheduler_whose_workers
     elsewhere.mkdir()
     here = tmp_path / "me"
     here.mkdir()
-    study = tiny(here, [0.01])
+    tiny(here, [0.01])  # writes tiny.yaml, run by its relative name
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster) as c:
         c.run(os.chdir, str(elsewhere))  # the workers' working folder is not the client's

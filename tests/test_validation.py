@@ -1,6 +1,5 @@
 """The exact references themselves (docs/methods.md#exact-references): lattices of tubes and honeycombs, traced exactly."""
 
-import math
 
 import numpy as np
 import pytest
