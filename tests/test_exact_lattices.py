@@ -88,3 +88,18 @@ def test_fresnel_on_a_lattice_reflects_some_rays_and_is_reproducible():
     plain = trace(lat.slab(40.0), beam, Optics(1.60, 1.40, seed=7), settings_for("exact"))
     assert np.array_equal(a.direction, b.direction)
     assert (a.direction[:, 1] < 0).sum() > (plain.direction[:, 1] < 0).sum()
+
+
+def test_a_thousand_rays_through_a_thick_honeycomb_meet_every_wall_the_independent_tracer_meets():
+    """Flat walls do not amplify rounding: through 300 µm of a jittered honeycomb (about 46
+    interfaces a ray, grazing chords of lumens among them) every ray meets the same interfaces
+    as the independent tracer and leaves within 1e-9 rad.  (Once a chord entered where the
+    lumen's g and the phase disagree within rounding was passed over: ray 366 of this beam.)"""
+    from pipeline.optics.references import reference
+
+    lat = reference("cells-hex", pitch_um=14.5, wall_um=2.0, jitter=0.1).lattice(1)
+    beam = square_beam(1000, 150.0, seed=1, direction=(0.2, 1.0, 0.1))
+    march = trace(lat.slab(300.0), beam, Optics(1.52, 1.49), settings_for("exact"))
+    ref = lat.trace(beam.origins, beam.unit_directions(), n_wall=1.52, n_poly=1.49, thickness_um=300.0)
+    assert np.array_equal(march.events, ref.events)
+    assert _angle(march.direction, ref.direction).max() <= 1e-9

@@ -120,7 +120,8 @@ def _regime(kind):
 def _gradient(base, lq, ctx, P, key, cache, h_grad, nrm, e):
     """(found, evaluations): the central-difference gradient of primitive ``key``'s g at ``base``
     (one-sided where the primitive is not listed on a side), normalised into ``nrm``."""
-    g0 = _g_of(base, e, 0.0, lq, ctx, P, key, cache)
+    g0 = np.nan  # g at base: only for a one-sided difference
+    k = 6
     ok = True
     for q in range(3):
         e[0] = 0.0
@@ -131,12 +132,16 @@ def _gradient(base, lq, ctx, P, key, cache, h_grad, nrm, e):
         gm = _g_of(base, e, -h_grad, lq, ctx, P, key, cache)
         nrm[q] = (gp - gm) / (2.0 * h_grad)
         if not (nrm[q] == nrm[q]):  # a side where the primitive is not listed: one-sided
+            if not (g0 == g0):
+                g0 = _g_of(base, e, 0.0, lq, ctx, P, key, cache)
+                k += 1
             nrm[q] = (gp - g0) / h_grad if gp == gp else (g0 - gm) / h_grad
         if not (nrm[q] == nrm[q]):
             ok = False
-    return ok, 7
+    return ok, k
 
 
+OVERSHOOT = 1.25  # a secant step towards a surface goes this far past the secant's root, checked at its end
 LATTICE = 2.0 ** -40  # [µm] crossings land on this lattice along a segment (~1e-12 µm)
 
 
@@ -186,6 +191,51 @@ def _find(P, n, key):
 
 
 @njit(cache=True, nogil=True)
+def _lattice_bracket(X, d, s, s_end, lo, hi, med, lq, ctx, P, Pa, Pb, cache, every, ne):
+    """The crossing in (lo, hi] (within the step (s, s_end], whose end is in the other phase) as
+    adjacent lattice points klo, khi: the last in phase ``med`` and the first in the other, by
+    bisection of the phase, their rows in Pa and Pb.  Where the phase has not changed at hi
+    (the switching primitive changed no phase, or its g and the phase part within rounding of
+    its root), the bisection runs to the step's end.  Returns (klo, khi, rows at klo, rows at khi,
+    evaluations)."""
+    klo = math.floor(lo / LATTICE)
+    khi = max(math.ceil(hi / LATTICE), klo + 1.0)
+    pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
+                        X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
+    ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
+                           X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
+    ne += 2
+    if pl != med:
+        klo = math.floor(s / LATTICE)
+        pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
+                            X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
+        ne += 1
+    if ph_hi == med:
+        khi = max(math.ceil(s_end / LATTICE), klo + 1.0)
+        ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
+                               X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
+        ne += 1
+    while khi - klo > 1.0:
+        kmid = math.floor(0.5 * (klo + khi))
+        phm, nm = surface_at(X[0] + kmid * LATTICE * d[0], X[1] + kmid * LATTICE * d[1],
+                             X[2] + kmid * LATTICE * d[2], lq, ctx, P, cache, every)
+        ne += 1
+        if phm == med:
+            klo = kmid
+            na = nm
+            for i in range(nm):
+                for q in range(N_COLS):
+                    Pa[i, q] = P[i, q]
+        else:
+            khi = kmid
+            nb = nm
+            for i in range(nm):
+                for q in range(N_COLS):
+                    Pb[i, q] = P[i, q]
+    return klo, khi, na, nb, ne
+
+
+@njit(cache=True, nogil=True)
 def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fseed, ctx,
                hit, tol, h_grad, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache):
     """Trace rays from ``pos`` (N, 3) [µm] with unit ``dirs`` through the wood between T = 0 and
@@ -212,6 +262,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     base = np.empty(3)
     e = np.empty(3)
     every = np.zeros(5)
+    prev_key = np.zeros(5)
     lq = 0.0
     for r in range(pos.shape[0]):
         # The ray is X0 + s·d on each straight segment: points are never accumulated step by
@@ -231,12 +282,19 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
         if med == 255:
             st = NEEDS_REGION
         t_face = _face(X, d, thickness)
+        have = True  # P holds the rows at s (the previous step's end, or the start)
+        relax_ok = True
+        prev_ok = False  # prev_key's g was prev_g at prev_s on this segment
+        prev_s = 0.0
+        prev_g = 0.0
         while st == 0:
-            ph, n = surface_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, every)
-            ne += 1
-            if ph == 255:
-                st = NEEDS_REGION
-                break
+            if not have:
+                ph, n = surface_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, every)
+                ne += 1
+                if ph == 255:
+                    st = NEEDS_REGION
+                    break
+            have = False
             a, other = _nearest(P, n, skip, key)
             # The primitive crossed last is free to switch once more only from inside its
             # negative set (a line that left a convex set does not come back to it).
@@ -245,8 +303,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 i = _find(P, n, skip)
                 skip_free = i >= 0 and P[i, 5] < 0.0
             g_a = 0.0
+            relax = False
             if a < 0:
                 step = other
+                prev_ok = False
             else:
                 g_a = P[a, 5]
                 if skip_free or g_a > 0.0 or _regime(P[a, 0]):
@@ -254,8 +314,33 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # primitive crossed last is free (one free primitive per step), and a regime
                     # surface is never passed blindly.
                     step = min(P[a, 6], other)
+                    # Over-relaxed steps, kept only if A switched at the step's end (once: its set
+                    # is convex) or the clearance balls of both ends cover the step (no chord of A
+                    # between them).  Approaching A (g falling since the last step): past the
+                    # secant's root of g.  Leaving it (g rising): as far as the balls would cover
+                    # were g to keep rising at most 0.8 times as fast.
+                    if (relax_ok and not skip_free and g_a > 0.0 and not _regime(P[a, 0]) and P[a, 6] < other
+                            and prev_ok and _same(P, a, prev_key) and prev_g != g_a):
+                        c_a = P[a, 6]
+                        if prev_g > g_a:
+                            root = OVERSHOOT * g_a * (s - prev_s) / (prev_g - g_a)
+                            if c_a < root <= other:
+                                step = root
+                                relax = True
+                        else:
+                            rise = 0.8 * (g_a - prev_g) / (s - prev_s) * c_a / g_a  # per µm, in clearance
+                            step = min(2.0 * c_a / (1.0 - rise) if rise < 0.9 else 20.0 * c_a, 20.0 * c_a, other)
+                            relax = True
+                    prev_ok = g_a > 0.0
+                    if prev_ok:
+                        for q in range(5):
+                            prev_key[q] = P[a, q]
+                        prev_s = s
+                        prev_g = g_a
                 else:
                     step = other
+                    prev_ok = False
+            relax_ok = True
             step *= step_scale
             near = step <= hit
             if near:
@@ -270,6 +355,13 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             if phb == 255:
                 st = NEEDS_REGION
                 break
+            if phb == med and relax and not near:
+                i = _find(Pb, nb, key)
+                if i < 0 or (Pb[i, 5] > 0.0 and P[a, 6] + Pb[i, 6] < s_end - s):
+                    # A may hold a chord between the ends: from s again, on A's own clearance.
+                    have = True
+                    relax_ok = False
+                    continue
             if phb == med:
                 if near:
                     npass += 1
@@ -281,6 +373,11 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     st = TRANSMITTED if d[1] > 0.0 else REFLECTED
                     break
                 s = s_end
+                n = nb
+                for i in range(nb):
+                    for q in range(N_COLS):
+                        P[i, q] = Pb[i, q]
+                have = True
                 continue
             if ev >= max_events:
                 st = TRAPPED
@@ -310,6 +407,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                             for q in range(5):
                                 key[q] = skip[q]
             g_hi = Pb[j, 5] if j >= 0 else np.nan
+            t_lo = g_lo  # the true g at lo and hi (Illinois halves its copies)
+            t_hi = g_hi
             if single:
                 # Regula falsi (Illinois) on the sign of g: the root of the primitive itself.
                 side = 0
@@ -332,59 +431,36 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     if (gm < 0.0) == (g_lo < 0.0):
                         lo = mid
                         g_lo = gm
+                        t_lo = gm
                         if side == -1:
                             g_hi *= 0.5
                         side = -1
                     else:
                         hi = mid
                         g_hi = gm
+                        t_hi = gm
                         if side == 1:
                             g_lo *= 0.5
                         side = 1
             # The crossing on the lattice of LATTICE µm along the segment: the first lattice point
-            # in the new phase, whatever bracket led there.
-            klo = math.floor(lo / LATTICE)
-            khi = max(math.ceil(hi / LATTICE), klo + 1.0)
-            pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
-                                 X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
-            ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
-                                    X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
-            ne += 2
-            if pl != med:
-                klo = math.floor(s / LATTICE)
+            # in the new phase, whatever bracket led there.  First a guess: the lattice points
+            # either side of the secant's root of g in the bracket.
+            guessed = False
+            if single and t_lo != t_hi:
+                root = min(max(lo + (hi - lo) * t_lo / (t_lo - t_hi), lo), hi)
+                klo = math.floor(root / LATTICE)
+                khi = klo + 1.0
                 pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
-                                     X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
+                                    X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
                 ne += 1
-            if ph_hi == med:
-                if single:
-                    # The primitive switched without changing the phase (e.g. the edge of a ray band
-                    # between two walls): go past it; what changes the phase lies further on.
-                    npass += 1
-                    for q in range(5):
-                        skip[q] = 0.0 if _regime(key[0]) else key[q]
-                    s = khi * LATTICE
-                    continue
-                khi = max(math.ceil(s_end / LATTICE), klo + 1.0)
-                ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
-                                        X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
-                ne += 1
-            while khi - klo > 1.0:
-                kmid = math.floor(0.5 * (klo + khi))
-                phm, nm = surface_at(X[0] + kmid * LATTICE * d[0], X[1] + kmid * LATTICE * d[1],
-                                      X[2] + kmid * LATTICE * d[2], lq, ctx, P, cache, every)
-                ne += 1
-                if phm == med:
-                    klo = kmid
-                    na = nm
-                    for i in range(nm):
-                        for q in range(N_COLS):
-                            Pa[i, q] = P[i, q]
-                else:
-                    khi = kmid
-                    nb = nm
-                    for i in range(nm):
-                        for q in range(N_COLS):
-                            Pb[i, q] = P[i, q]
+                if pl == med:
+                    ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
+                                           X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
+                    ne += 1
+                    guessed = ph_hi != med
+            if not guessed:
+                klo, khi, na, nb, ne = _lattice_bracket(X, d, s, s_end, lo, hi, med, lq, ctx, P, Pa, Pb, cache,
+                                                        every, ne)
             lo = klo * LATTICE
             hi = khi * LATTICE
             # The normal: the gradient of the switching primitive at the crossing.
@@ -418,6 +494,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             length += t_go
             s = 0.0
             med = new
+            prev_ok = False  # a new segment
             for q in range(3):
                 d[q] = nd[q]
             t_face = _face(X, d, thickness)
