@@ -135,6 +135,45 @@ def test_oblique_rays_cross_every_phase_change_of_their_line():
                 assert res.events[i] == np.count_nonzero(np.diff(ph.astype(np.int8))), (angle, i)
 
 
+def _missed_along_path(surf, origin, direction, n_wall, n_poly, per_um):
+    """Trace one ray with its interfaces logged, and sample the generator's phase along every
+    straight segment between them (every 1/per_um µm, the ends left out): the phase changes the
+    trace did not stop at, as (segment, distance along it)."""
+    out = surf.trace_surfaces(origin[None], direction[None], n_wall=n_wall, n_poly=n_poly, max_events=10_000,
+                              log_events=2_000)
+    log, ev = out["log"][0], int(out["events"][0])
+    assert ev < 2_000
+    starts = [origin] + [log[e, :3] for e in range(ev)]
+    ends = [log[e, :3] for e in range(ev)] + [out["position"][0]]
+    missed = []
+    for e, (a, b) in enumerate(zip(starts, ends)):
+        length = float(np.linalg.norm(b - a))
+        s = np.arange(1e-6, length - 1e-6, 1.0 / per_um)
+        if s.size < 2:
+            continue
+        pts = a + s[:, None] * ((b - a) / length)
+        ph = R.phases(pts, 0.0, surf._context(pts, 5.0))
+        missed += [(e, float(s[i])) for i in np.flatnonzero(np.diff(ph.astype(int)))]
+    return missed, ev
+
+
+def test_along_refracted_paths_no_segment_holds_a_phase_change_of_the_generator():
+    """At ΔRI ≠ 0: between the interfaces a ray stopped at, the generator's phase sampled every
+    1/256 µm never changes.  Rays 7 and 731 of this beam once stepped over polymer chords of
+    0.06–0.09 µm where a ray-cell lumen is entered inside its end wall (a step kept because that
+    lumen had switched once, while inside it the end walls switched as well)."""
+    p = build_params("birch")
+    surf = WoodSurface(p, thickness_um=1000.0, seed=1)
+    beam = square_beam(1000, 150.0, seed=1)
+    d = beam.unit_directions()
+    total = 0
+    for k in (7, 731):
+        missed, ev = _missed_along_path(surf, beam.origins[k], d[k], 1.53, 1.52, 256)
+        assert missed == [], (k, missed)
+        total += ev
+    assert total > 200
+
+
 def test_halving_every_step_and_tolerance_leaves_the_rays_bit_for_bit():
     """No fixed step is trusted, and none decides a result: stepping half the proven clearance,
     with half the probe and bracket tolerances, lands every crossing on the same lattice point

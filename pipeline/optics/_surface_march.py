@@ -141,6 +141,7 @@ def _gradient(base, lq, ctx, P, key, cache, h_grad, nrm, e):
     return ok, k
 
 
+PROBE = 1024.0  # lattice points (about 1e-9 µm) probed past a root where g and the phase part
 OVERSHOOT = 1.25  # a secant step towards a surface goes this far past the secant's root, checked at its end
 LATTICE = 2.0 ** -40  # [µm] crossings land on this lattice along a segment (~1e-12 µm)
 
@@ -191,13 +192,15 @@ def _find(P, n, key):
 
 
 @njit(cache=True, nogil=True)
-def _lattice_bracket(X, d, s, s_end, lo, hi, med, lq, ctx, P, Pa, Pb, cache, every, ne):
+def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, cache, every, ne):
     """The crossing in (lo, hi] (within the step (s, s_end], whose end is in the other phase) as
     adjacent lattice points klo, khi: the last in phase ``med`` and the first in the other, by
-    bisection of the phase, their rows in Pa and Pb.  Where the phase has not changed at hi
-    (the switching primitive changed no phase, or its g and the phase part within rounding of
-    its root), the bisection runs to the step's end.  Returns (klo, khi, rows at klo, rows at khi,
-    evaluations)."""
+    bisection of the phase, their rows in Pa and Pb.  Where the phase has not changed at hi:
+    if one primitive switched there (``single``), the phase is probed up to PROBE lattice points
+    further (its g and the phase may part within rounding of its root); unchanged there too, the
+    primitive changed no phase (a lumen entered inside its end wall) and the step is ``passed``
+    with khi that last probe.  Otherwise the bisection runs to the step's end.  Returns (klo,
+    khi, rows at klo, rows at khi, evaluations, passed)."""
     klo = math.floor(lo / LATTICE)
     khi = max(math.ceil(hi / LATTICE), klo + 1.0)
     pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
@@ -210,6 +213,29 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, lq, ctx, P, Pa, Pb, cache, eve
         pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
                             X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
         ne += 1
+    if ph_hi == med and single:
+        jump = 1.0
+        while ph_hi == med and jump <= PROBE:
+            kp = khi + jump
+            php, npp = surface_at(X[0] + kp * LATTICE * d[0], X[1] + kp * LATTICE * d[1],
+                                  X[2] + kp * LATTICE * d[2], lq, ctx, P, cache, every)
+            ne += 1
+            if php == med:  # the new lower end
+                klo = khi
+                na = nb
+                for i in range(nb):
+                    for q in range(N_COLS):
+                        Pa[i, q] = Pb[i, q]
+            else:
+                ph_hi = php
+            khi = kp
+            nb = npp
+            for i in range(npp):
+                for q in range(N_COLS):
+                    Pb[i, q] = P[i, q]
+            jump *= 2.0
+        if ph_hi == med:
+            return klo, khi, na, nb, ne, True
     if ph_hi == med:
         khi = max(math.ceil(s_end / LATTICE), klo + 1.0)
         ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
@@ -232,7 +258,7 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, lq, ctx, P, Pa, Pb, cache, eve
             for i in range(nm):
                 for q in range(N_COLS):
                     Pb[i, q] = P[i, q]
-    return klo, khi, na, nb, ne
+    return klo, khi, na, nb, ne, False
 
 
 @njit(cache=True, nogil=True)
@@ -285,6 +311,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
         have = True  # P holds the rows at s (the previous step's end, or the start)
         relax_ok = True
         prev_ok = False  # prev_key's g was prev_g at prev_s on this segment
+        force_free = False  # the primitive passed last is entered, whatever its g's rounding
         prev_s = 0.0
         prev_g = 0.0
         while st == 0:
@@ -298,8 +325,9 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             a, other = _nearest(P, n, skip, key)
             # The primitive crossed last is free to switch once more only from inside its
             # negative set (a line that left a convex set does not come back to it).
-            skip_free = False
-            if skip[0] > 0.0:
+            skip_free = force_free
+            force_free = False
+            if skip[0] > 0.0 and not skip_free:
                 i = _find(P, n, skip)
                 skip_free = i >= 0 and P[i, 5] < 0.0
             g_a = 0.0
@@ -314,11 +342,13 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # primitive crossed last is free (one free primitive per step), and a regime
                     # surface is never passed blindly.
                     step = min(P[a, 6], other)
-                    # Over-relaxed steps, kept only if A switched at the step's end (once: its set
-                    # is convex) or the clearance balls of both ends cover the step (no chord of A
-                    # between them).  Approaching A (g falling since the last step): past the
-                    # secant's root of g.  Leaving it (g rising): as far as the balls would cover
-                    # were g to keep rising at most 0.8 times as fast.
+                    # Over-relaxed steps, kept only if the step's end is in the other phase (a
+                    # crossing, bracketed: A, entered once, switched first) or A's g is still
+                    # positive there and the clearance balls of both ends cover the step (no chord
+                    # of A between them; inside A other primitives apply).  Approaching A (g
+                    # falling since the last step): past the secant's root of g.  Leaving it (g
+                    # rising): as far as the balls would cover were g to keep rising at most 0.8
+                    # times as fast.
                     if (relax_ok and not skip_free and g_a > 0.0 and not _regime(P[a, 0]) and P[a, 6] < other
                             and prev_ok and _same(P, a, prev_key) and prev_g != g_a):
                         c_a = P[a, 6]
@@ -357,8 +387,9 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 break
             if phb == med and relax and not near:
                 i = _find(Pb, nb, key)
-                if i < 0 or (Pb[i, 5] > 0.0 and P[a, 6] + Pb[i, 6] < s_end - s):
-                    # A may hold a chord between the ends: from s again, on A's own clearance.
+                if i < 0 or Pb[i, 5] <= 0.0 or P[a, 6] + Pb[i, 6] < s_end - s:
+                    # A may hold a chord between the ends, or was entered with no phase change
+                    # (inside it other primitives apply): from s again, on A's own clearance.
                     have = True
                     relax_ok = False
                     continue
@@ -459,8 +490,18 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     ne += 1
                     guessed = ph_hi != med
             if not guessed:
-                klo, khi, na, nb, ne = _lattice_bracket(X, d, s, s_end, lo, hi, med, lq, ctx, P, Pa, Pb, cache,
-                                                        every, ne)
+                klo, khi, na, nb, ne, passed = _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa,
+                                                                Pb, cache, every, ne)
+                if passed:
+                    # The primitive switched without changing the phase (a lumen entered inside its
+                    # end wall, the edge of a ray band between two walls): go past it, inside it
+                    # whatever the rounding of its g says; what changes the phase lies further on.
+                    npass += 1
+                    for q in range(5):
+                        skip[q] = 0.0 if _regime(key[0]) else key[q]
+                    force_free = not _regime(key[0])
+                    s = khi * LATTICE
+                    continue
             lo = klo * LATTICE
             hi = khi * LATTICE
             # The normal: the gradient of the switching primitive at the crossing.
