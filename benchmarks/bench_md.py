@@ -120,6 +120,11 @@ def render(doc: dict) -> str:
                f"(distortion tiles, vessels; {z['regions']} regions); {z['interfaces']:,} interfaces, "
                f"{z['us_per_interface_wall']:.1f} µs each on the wall clock, {z['evaluations_per_interface']:.1f} "
                f"point evaluations per interface; peak RSS {z['peak_rss_mb']:.0f} MiB; no voxel generated."]
+        v = e.get("lazy_1_5mm_accurate")
+        if v:
+            md[-1] += (f" The same trace with `{v['method']}` in the same run: {v['seconds']:.1f} s "
+                       f"({v['interfaces']:,} interfaces, peak RSS {v['peak_rss_mb']:.0f} MiB), "
+                       f"{v['seconds'] / z['seconds']:.2f}× the time of `exact`.")
         f = e["refinement"]
         md += ["", f"Every step and tolerance halved (1000 rays × 1 mm, {f['interfaces_per_ray']:.0f} interfaces a ray, "
                f"{f['evaluations_ratio']:.1f}× the evaluations): {f['rays_bit_identical']} rays come out bit for bit "

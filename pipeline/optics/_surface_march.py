@@ -191,6 +191,20 @@ def _find(P, n, key):
     return -1
 
 
+@njit(inline="always", cache=True, nogil=True)
+def _copy_rows(dst, src, n):
+    for i in range(n):
+        for q in range(N_COLS):
+            dst[i, q] = src[i, q]
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _at_lattice(X, d, k, lq, ctx, P, cache, every):
+    """surface_at of lattice point k of the segment X + s·d (s = k·LATTICE)."""
+    return surface_at(X[0] + k * LATTICE * d[0], X[1] + k * LATTICE * d[1], X[2] + k * LATTICE * d[2], lq, ctx, P,
+                      cache, every)
+
+
 @njit(cache=True, nogil=True)
 def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, cache, every, ne):
     """The crossing in (lo, hi] (within the step (s, s_end], whose end is in the other phase) as
@@ -203,61 +217,47 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, ca
     khi, rows at klo, rows at khi, evaluations, passed)."""
     klo = math.floor(lo / LATTICE)
     khi = max(math.ceil(hi / LATTICE), klo + 1.0)
-    pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
-                        X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
-    ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
-                           X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
+    pl, na = _at_lattice(X, d, klo, lq, ctx, Pa, cache, every)
+    ph_hi, nb = _at_lattice(X, d, khi, lq, ctx, Pb, cache, every)
     ne += 2
     if pl != med:
         klo = math.floor(s / LATTICE)
-        pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
-                            X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
+        pl, na = _at_lattice(X, d, klo, lq, ctx, Pa, cache, every)
         ne += 1
     if ph_hi == med and single:
         jump = 1.0
         while ph_hi == med and jump <= PROBE:
             kp = khi + jump
-            php, npp = surface_at(X[0] + kp * LATTICE * d[0], X[1] + kp * LATTICE * d[1],
-                                  X[2] + kp * LATTICE * d[2], lq, ctx, P, cache, every)
+            php, npp = _at_lattice(X, d, kp, lq, ctx, P, cache, every)
             ne += 1
             if php == med:  # the new lower end
                 klo = khi
                 na = nb
-                for i in range(nb):
-                    for q in range(N_COLS):
-                        Pa[i, q] = Pb[i, q]
+                _copy_rows(Pa, Pb, nb)
             else:
                 ph_hi = php
             khi = kp
             nb = npp
-            for i in range(npp):
-                for q in range(N_COLS):
-                    Pb[i, q] = P[i, q]
+            _copy_rows(Pb, P, npp)
             jump *= 2.0
         if ph_hi == med:
             return klo, khi, na, nb, ne, True
     if ph_hi == med:
         khi = max(math.ceil(s_end / LATTICE), klo + 1.0)
-        ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
-                               X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
+        ph_hi, nb = _at_lattice(X, d, khi, lq, ctx, Pb, cache, every)
         ne += 1
     while khi - klo > 1.0:
         kmid = math.floor(0.5 * (klo + khi))
-        phm, nm = surface_at(X[0] + kmid * LATTICE * d[0], X[1] + kmid * LATTICE * d[1],
-                             X[2] + kmid * LATTICE * d[2], lq, ctx, P, cache, every)
+        phm, nm = _at_lattice(X, d, kmid, lq, ctx, P, cache, every)
         ne += 1
         if phm == med:
             klo = kmid
             na = nm
-            for i in range(nm):
-                for q in range(N_COLS):
-                    Pa[i, q] = P[i, q]
+            _copy_rows(Pa, P, nm)
         else:
             khi = kmid
             nb = nm
-            for i in range(nm):
-                for q in range(N_COLS):
-                    Pb[i, q] = P[i, q]
+            _copy_rows(Pb, P, nm)
     return klo, khi, na, nb, ne, False
 
 
@@ -405,9 +405,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     break
                 s = s_end
                 n = nb
-                for i in range(nb):
-                    for q in range(N_COLS):
-                        P[i, q] = Pb[i, q]
+                _copy_rows(P, Pb, nb)
                 have = True
                 continue
             if ev >= max_events:
@@ -481,12 +479,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 root = min(max(lo + (hi - lo) * t_lo / (t_lo - t_hi), lo), hi)
                 klo = math.floor(root / LATTICE)
                 khi = klo + 1.0
-                pl, na = surface_at(X[0] + klo * LATTICE * d[0], X[1] + klo * LATTICE * d[1],
-                                    X[2] + klo * LATTICE * d[2], lq, ctx, Pa, cache, every)
+                pl, na = _at_lattice(X, d, klo, lq, ctx, Pa, cache, every)
                 ne += 1
                 if pl == med:
-                    ph_hi, nb = surface_at(X[0] + khi * LATTICE * d[0], X[1] + khi * LATTICE * d[1],
-                                           X[2] + khi * LATTICE * d[2], lq, ctx, Pb, cache, every)
+                    ph_hi, nb = _at_lattice(X, d, khi, lq, ctx, Pb, cache, every)
                     ne += 1
                     guessed = ph_hi != med
             if not guessed:
