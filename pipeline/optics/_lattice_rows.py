@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit
 
 from ..microstructure.surface import P_REACH
-from ._exact import CELLS, TUBES, lattice_index, phase_at, site
+from ._exact import CELLS, TUBES, _fill_sites, lattice_index, phase_at, site
 
 P_TUBE_OUT = P_REACH + 1  # outer circle of tube (i, j)
 P_TUBE_IN = P_REACH + 2  # inner circle (lumen) of tube (i, j)
@@ -63,21 +63,24 @@ def _put(P, n, kind, i, j, g):
 
 
 @njit(inline="always", cache=True, nogil=True)
-def _cell_g(geo, seed, i, j, x, y, face):
-    """g of the lumen of site (i, j) at (x, y), and in ``face`` the unit vector e of its largest face."""
-    cx, cy = site(geo, seed, i, j)
+def _cell_g(tab, i, j, x, y, h, face):
+    """g of the lumen of site tab[i, j] at (x, y) (its neighbours tab[i ± 2, j ± 2]; half wall h),
+    and in ``face`` the unit vector e of its largest face."""
+    cx = tab[i, j, 0]
+    cy = tab[i, j, 1]
     g = -1e300
     for a in range(i - 2, i + 3):
         for b in range(j - 2, j + 3):
             if a == i and b == j:
                 continue
-            kx, ky = site(geo, seed, a, b)
+            kx = tab[a, b, 0]
+            ky = tab[a, b, 1]
             ex = kx - cx
             ey = ky - cy
             n = math.sqrt(ex * ex + ey * ey)
             ex /= n
             ey /= n
-            f = (x - 0.5 * (cx + kx)) * ex + (y - 0.5 * (cy + ky)) * ey + geo[11]
+            f = (x - 0.5 * (cx + kx)) * ex + (y - 0.5 * (cy + ky)) * ey + h
             if f > g:
                 g = f
                 face[0] = ex
@@ -92,6 +95,11 @@ def lattice_rows(R, T, ctx, P):
     ph = phase_at(geo, kind, seed, R, T)
     i0, j0 = lattice_index(geo, R, T)
     face = np.empty(2)
+    side = 2 * BLOCK + 5 if kind == CELLS else 1
+    tab = np.empty((side, side, 2))  # honeycombs: the sites within BLOCK + 2 indices
+    if kind == CELLS:
+        _fill_sites(geo, seed, i0, j0, tab)
+    half = BLOCK + 2
     n = 0
     for i in range(i0 - BLOCK, i0 + BLOCK + 1):
         for j in range(j0 - BLOCK, j0 + BLOCK + 1):
@@ -104,7 +112,7 @@ def lattice_rows(R, T, ctx, P):
                     n = _put(P, n, P_TUBE_OUT, i, j, g_out)
                     n = _put(P, n, P_TUBE_IN, i, j, g_in)
             elif dist - (0.71 * math.sqrt(geo[0] ** 2 + geo[1] ** 2) + 1.42 * geo[6]) < reach:
-                g = _cell_g(geo, seed, i, j, R, T, face)
+                g = _cell_g(tab, i - i0 + half, j - j0 + half, R, T, geo[11], face)
                 if abs(g) < reach:
                     n = _put(P, n, P_CELL, i, j, g)
     if n < P.shape[0]:
@@ -127,7 +135,9 @@ def lattice_normal(R, T, ctx, key, nrm):
     nrm[2] = 0.0
     if key[0] == P_CELL and kind == CELLS:
         face = np.empty(2)
-        _cell_g(geo, seed, i, j, R, T, face)
+        tab = np.empty((5, 5, 2))
+        _fill_sites(geo, seed, i, j, tab)
+        _cell_g(tab, 2, 2, R, T, geo[11], face)
         nrm[0] = face[0]
         nrm[1] = face[1]
         return True
