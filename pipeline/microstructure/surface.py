@@ -30,7 +30,7 @@ from numba import njit
 from .. import rng as _rng
 from ..rng import uniform
 from ._constants import (PITCH, RAYS, RHEIGHT, RJIT, RLEN, RLEN_SD, RSER, RSPACE, RSQUEEZE, SCALE, SHAPE, T0,
-                         VWALL)
+                         TILE, VWALL)
 from ._distortion import pull_back
 from ._lattice import chain_interval
 from ._ray_cells import group_span, ray_band_width, ray_cell_phase, ray_group, ray_row, ray_slice_tables
@@ -43,13 +43,14 @@ from ._surface_rows import (INF, MAX_PRIMS, N_COLS, P_BAND, P_FACE, P_LUMEN, P_P
                             R_BAND, R_NODE, R_SQ, R_SQ_L, VBUCKET, VESSEL_REACH, _ellipse_margin, _row, rates)
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_p, vessels, nv, vbox, vidx, rt, P, cache, want):
+def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, vbox, vidx, rt, P, cache, want):
     """Phase at the global point (R, T, L) [µm] of one ply, and the primitives near it.
 
     ply : (cos, sin, ΔR, ΔT, ΔL) of the ply (:func:`~pipeline.microstructure.model.generate_block`).
     lq : 0 for the exact point; > 0 rounds a rotated ply's L to multiples of lq,
         as the generator does for its slices (lq = voxel/2).
-    patch, gi0, gj0 : the ply's distortion grid; lam_p : the Lipschitz constant of its pull-back.
+    patch, gi0, gj0 : the ply's distortion grid; lam_tab : per tile of it, the Lipschitz constant of
+        its pull-back near the tile (:func:`~pipeline.microstructure.region.region_context`).
     vessels, nv : the ply's vessel members for the node box ``vbox`` (n_lo, n_hi, m_lo, m_hi)
         widened by :data:`VESSEL_REACH`; a point whose cell leaves ``vbox`` returns 255.
     vidx : (bucket grid shape, pointers, cluster starts): per bucket of VBUCKET² nodes of vbox,
@@ -76,6 +77,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_p, vessels, nv, vbo
     if ix < 0 or iy < 0 or ix >= patch.shape[0] - 1 or iy >= patch.shape[1] - 1:
         return np.uint8(255), 0
     pR, pT = pull_back(patch, gi0, gj0, G, Rp, Tp)
+    lam_p = lam_tab[ix // TILE, iy // TILE]
     np_ = 0
     k_in = lam_p * rt[R_SQ] + rt[R_SQ_L]  # pulled-back point, per µm of travel
     # Ray bands: rows whose band or squeeze can reach the point, in increasing k.
