@@ -42,6 +42,9 @@ from ._surface_rows import (INF, MAX_PRIMS, N_COLS, P_BAND, P_FACE, P_LUMEN, P_P
                             P_RAY_LUMEN, P_REACH, P_TIP, P_TIP_END, P_VESSEL_IN, P_VESSEL_OUT, P_VESSEL_SHARED,
                             R_BAND, R_NODE, R_SQ, R_SQ_L, VBUCKET, VESSEL_REACH, _ellipse_margin, _row, rates)
 
+put_row = _row  # (P, n, kind, a, b, c, d, g, clearance) -> n + 1: how any surface lists a row for the march
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, vbox, vidx, rt, P, cache, want):
     """Phase at the global point (R, T, L) [µm] of one ply, and the primitives near it.

@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..microstructure.surface import P_REACH
+from ..microstructure.surface import P_REACH, put_row
 from ._exact import CELLS, TUBES, _fill_sites, lattice_index, phase_at, site
 
 P_TUBE_OUT = P_REACH + 1  # outer circle of tube (i, j)
@@ -46,20 +46,6 @@ def lattice_context(geo: np.ndarray, kind: int, seed: int) -> tuple:
     if not reach > 0.0:
         raise ValueError(f"a lattice whose sites reach {reach:g} µm beyond the rows listed: lower the jitter")
     return (np.ascontiguousarray(geo, np.float64), np.int64(kind), np.uint64(seed), float(reach))
-
-
-@njit(inline="always", cache=True, nogil=True)
-def _put(P, n, kind, i, j, g):
-    if n < P.shape[0]:
-        P[n, 0] = kind
-        P[n, 1] = i
-        P[n, 2] = j
-        P[n, 3] = 0.0
-        P[n, 4] = 0.0
-        P[n, 5] = g
-        P[n, 6] = abs(g)
-        return n + 1
-    return n
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -109,20 +95,13 @@ def lattice_rows(R, T, ctx, P):
                 g_out = dist - geo[11]
                 g_in = dist - geo[12]
                 if min(abs(g_out), abs(g_in)) < reach:
-                    n = _put(P, n, P_TUBE_OUT, i, j, g_out)
-                    n = _put(P, n, P_TUBE_IN, i, j, g_in)
+                    n = put_row(P, n, P_TUBE_OUT, i, j, 0, 0, g_out, abs(g_out))
+                    n = put_row(P, n, P_TUBE_IN, i, j, 0, 0, g_in, abs(g_in))
             elif dist - (0.71 * math.sqrt(geo[0] ** 2 + geo[1] ** 2) + 1.42 * geo[6]) < reach:
                 g = _cell_g(tab, i - i0 + half, j - j0 + half, R, T, geo[11], face)
                 if abs(g) < reach:
-                    n = _put(P, n, P_CELL, i, j, g)
-    if n < P.shape[0]:
-        P[n, 0] = P_REACH
-        for q in range(1, 5):
-            P[n, q] = 0.0
-        P[n, 5] = reach
-        P[n, 6] = reach
-        n += 1
-    return ph, n
+                    n = put_row(P, n, P_CELL, i, j, 0, 0, g, abs(g))
+    return ph, put_row(P, n, P_REACH, 0, 0, 0, 0, reach, reach)
 
 
 @njit(cache=True, nogil=True)
