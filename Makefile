@@ -4,15 +4,17 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
-SCALE ?= paper
+# quick: the paper's samples and woods, a twentieth of the rays (minutes); paper: the committed
+# results (SCALE=paper YES=1); small: a tenth of the thickness (tests).
+SCALE ?= quick
 SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 EXPERIMENT := birch-0.7mm birch-0.7mm-air balsa-1mm balsa-1mm-air
 FIBRE_TIPS := with-ray-cells without-ray-cells
-# YES=1 runs what is estimated above TWRAY_CONFIRM_CPU_HOURS (Table 1 at paper scale: ~2.2 CPU-h).
+# YES=1 runs what is estimated above TWRAY_CONFIRM_CPU_HOURS.
 YES ?=
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $(YES),--yes)
-# Each scale has its own results folder: results/paper/ (committed) and results/small/.
+# Each scale has its own results folder: results/paper/ (committed), results/quick/ and results/small/.
 RESULTS = results/$(SCALE)
 
 .PHONY: install wheel-check demo test figures report experiment fibre-tips table1-paper-method convergence bench bench-generate bench-trace bench-exact bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
@@ -29,7 +31,8 @@ $(STAMP): pyproject.toml
 wheel-check:
 	./.ci/wheel-check
 
-## Main job: the paper's Table 1 (all studies) on a local Dask cluster, cached in results/cache.
+## Main job: the paper's Table 1 (all studies, `exact`) on a local Dask cluster, cached in results/cache
+## (SCALE=quick by default: results/quick/; SCALE=paper YES=1 for the committed results/paper/).
 table1: install
 	$(BIN)/twray study $(addprefix studies/table1/,$(addsuffix .yaml,$(STUDIES))) $(STUDY_ARGS) --results $(RESULTS) --report $(RESULTS)/table1.md
 

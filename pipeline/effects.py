@@ -178,16 +178,18 @@ def _each(one, name: str) -> np.ndarray:
     each = f"{name}_per_realisation"
     return np.atleast_1d(one[each].values if each in one else one[name].values).astype(float)
 
-def method_rows(tables: dict, paper: dict, *, n_boot: int = N_BOOT, seed: int = 0) -> list[dict]:
-    """Every Table 1 value traced with `accurate` and with the paper's method: both pooled,
-    and their paired difference (% of `accurate`) on the rays both traced (the same woods, the
-    same entry points: ray i of a beam enters at the same point whatever the total), from a
-    hierarchical bootstrap drawing the same woods and rays for both methods."""
+def method_rows(tables: dict, other: dict, *, n_boot: int = N_BOOT, seed: int = 0) -> list[dict]:
+    """Every Table 1 value traced with two methods (``tables``: the reference, ``other``: the
+    compared one, each dataset's ``trace_settings`` naming its method): both pooled, and their
+    paired difference (% of the reference; haze in points) on the rays both traced (the same woods,
+    the same entry points: ray i of a beam enters at the same point whatever the total), from a
+    hierarchical bootstrap drawing the same woods and rays for both methods.  Keys ``<q>_ref``,
+    ``<q>_other``, ``<q>_change``; ``ref`` and ``other`` are the methods' names."""
     rng = np.random.default_rng(seed)
     a = (1.0 - LEVEL) / 2.0
     rows = []
     for name, acc in tables.items():
-        pap = paper[name]
+        pap = other[name]
         dim = study_dimension(acc)
         arrays = [[per_ray(d, v) for v in ("theta_r", "theta_l", "status")] for d in (acc, pap)]
         n_real = min(arrays[0][0].shape[1], arrays[1][0].shape[1])
@@ -207,16 +209,21 @@ def method_rows(tables: dict, paper: dict, *, n_boot: int = N_BOOT, seed: int = 
                     100 * (point[1][2] - point[0][2])]
             rows.append({
                 "study": name, "parameter": dim, "value": value_label(acc[dim].values[k]),
+                "ref": method_of(acc), "other": method_of(pap),
                 **{f"{q}_{m}": float(d[q].values[k]) * (100 if q == "haze" else 1)
-                   for q in ("FWHM_R", "FWHM_L", "haze") for m, d in (("accurate", acc), ("paper", pap))},
+                   for q in ("FWHM_R", "FWHM_L", "haze") for m, d in (("ref", acc), ("other", pap))},
                 **{f"{q}_{m}_ci": tuple(float(d[f"{q}_ci_{b}"].values[k]) * (100 if q == "haze" else 1)
                                         for b in ("lower", "upper"))
-                   for q in ("FWHM_R", "FWHM_L", "haze") for m, d in (("accurate", acc), ("paper", pap))},
+                   for q in ("FWHM_R", "FWHM_L", "haze") for m, d in (("ref", acc), ("other", pap))},
                 **{f"{q}_change": (diff[j], (float(np.quantile(boots[:, j], a)), float(np.quantile(boots[:, j], 1 - a))))
                    for j, q in enumerate(("FWHM_R", "FWHM_L", "haze"))},
-                "rays_paper": pap.sizes["ray"], "rays_common": n, "realisations_common": n_real,
+                "rays_other": pap.sizes["ray"], "rays_common": n, "realisations_common": n_real,
             })
     return rows
+
+def method_of(ds) -> str:
+    """The trace method a study dataset was traced with."""
+    return json.loads(ds.attrs["trace_settings"])["method"]
 
 EXPERIMENT = ("birch-0.7mm", "balsa-1mm")
 

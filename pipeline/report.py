@@ -76,8 +76,10 @@ def variation_markdown(rows: list[dict]) -> list[str]:
     return lines
 
 def method_markdown(rows: list[dict]) -> list[str]:
-    lines = ["| study | value | FWHM_R (°): accurate · paper | paper − accurate | FWHM_L (°): accurate · paper "
-             "| paper − accurate | haze (%): accurate · paper | paper − accurate |", "|---|---|---|---|---|---|---|---|"]
+    ref, other = rows[0]["ref"], rows[0]["other"]
+    both, minus = f"{ref} · {other}", f"{other} − {ref}"
+    lines = [f"| study | value | FWHM_R (°): {both} | {minus} | FWHM_L (°): {both} | {minus} | haze (%): {both} "
+             f"| {minus} |", "|---|---|---|---|---|---|---|---|"]
 
     def change(c, unit):
         d, (lo, hi) = c
@@ -85,9 +87,9 @@ def method_markdown(rows: list[dict]) -> list[str]:
 
     for r in rows:
         lines.append(
-            f"| {r['study']} | {r['parameter']} {r['value']} | {r['FWHM_R_accurate']:.2f} · {r['FWHM_R_paper']:.2f} | "
-            f"{change(r['FWHM_R_change'], ' %')} | {r['FWHM_L_accurate']:.2f} · {r['FWHM_L_paper']:.2f} | "
-            f"{change(r['FWHM_L_change'], ' %')} | {r['haze_accurate']:.1f} · {r['haze_paper']:.1f} | "
+            f"| {r['study']} | {r['parameter']} {r['value']} | {r['FWHM_R_ref']:.2f} · {r['FWHM_R_other']:.2f} | "
+            f"{change(r['FWHM_R_change'], ' %')} | {r['FWHM_L_ref']:.2f} · {r['FWHM_L_other']:.2f} | "
+            f"{change(r['FWHM_L_change'], ' %')} | {r['haze_ref']:.1f} · {r['haze_other']:.1f} | "
             f"{change(r['haze_change'], ' pts')} |")
     return lines
 
@@ -249,6 +251,8 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     tips = fibre_tip_rows(base, n_boot=n_boot)
     paper_tables = load_table1(base / "paper-method")
     methods = method_rows(tables, paper_tables, n_boot=n_boot)
+    voxel_dir = base / "accurate"
+    voxel_rows = method_rows(tables, load_table1(voxel_dir), n_boot=n_boot) if voxel_dir.exists() else []
     p1 = paper_tables["study-1"]
     s1 = tables["study-1"]
     n_real = s1.sizes.get("realisation", 1)
@@ -269,7 +273,9 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         f"{s1.attrs['rays']} rays per value on each of {n_real} wood realisations (seeds "
         f"{seeds[0]}-{seeds[-1]}: every value of every study is traced on the same {n_real} woods), "
         f"method `{settings['method']}` "
-        f"(wood traced on {traced_voxel(json.loads(s1.attrs['scenes'])[0]):g} µm voxels), "
+        + (f"(wood traced on {traced_voxel(json.loads(s1.attrs['scenes'])[0]):g} µm voxels), "
+           if settings["method"] != "exact" else "(the model's own surfaces, no voxels), ")
+        + 
         f"angles {s1.attrs['exit_angles']} (inside the sample).")
     add("")
     add("## The microstructures")
@@ -336,14 +342,26 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         "(docs/methods.md#table-1 gives the studies, not their results), so the comparison above is with what "
         "geometrical optics predicts, not with the paper's numbers.")
     add("")
-    add("## The paper's method beside `accurate`")
+    if voxel_rows:
+        v1 = load_table1(voxel_dir)["study-1"]
+        add(f"## `{voxel_rows[0]['other']}` beside `{voxel_rows[0]['ref']}`: the voxel error on the wood itself")
+        add("")
+        add(f"Table 1 as traced with `{voxel_rows[0]['other']}` (wood on "
+            f"{traced_voxel(json.loads(v1.attrs['scenes'])[0]):g} µm voxels, `results/{scale_dir}/accurate/`), "
+            f"beside the same values traced with `{voxel_rows[0]['ref']}` on the same {n_real} woods with the same "
+            f"{voxel_rows[0]['rays_common']} rays each: the paired difference is the voxel method's error on each "
+            "Table 1 scene, hierarchical bootstrap 95 % intervals.")
+        add("")
+        L.extend(method_markdown(voxel_rows))
+        add("")
+    add(f"## The paper's method beside `{settings['method']}`")
     add("")
     add(f"Table 1 traced again with the paper's method (`--method paper`: 2-voxel steps, the crossing at the "
         f"midpoint, a linear SVM normal on 6×6×6 voxels, wood on 0.5 µm voxels), {p1.attrs['rays']} rays on each "
         f"of the same {p1.sizes.get('realisation', 1)} woods (`results/{scale_dir}/paper-method/`). The "
         "differences are paired: the same woods and the same rays (ray i of a beam enters at the same point "
         f"whatever the total), {methods[0]['rays_common']} per wood, hierarchical bootstrap 95 % intervals. "
-        "A difference here comes from the method alone; one between `accurate` and the published numbers that "
+        f"A difference here comes from the method alone; one between `{settings['method']}` and the published numbers that "
         "is not here comes from the wood model or the statistics.")
     add("")
     L.extend(method_markdown(methods))
@@ -429,21 +447,31 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add("## Where twray differs from the paper, and why")
     add("")
-    add(f"- **Method.** Table 1 here uses `{settings['method']}`: exact voxel traversal (no wall skipped) and "
-        "normals from a Gaussian-smoothed wall indicator, on wood generated at half the paper's voxel. "
-        "The paper's method (2-voxel steps, midpoint crossing, a linear SVM on 6×6×6 voxels) is "
-        "`--method paper`; against exact optics on thin-walled lattices it is several times less accurate "
-        "(results/accuracy.md, TRADEOFF.md).")
-    add("- **Resolution.** The paper's 0.5 µm voxel puts 4 voxels across a 2 µm wall; the smoothed normal "
-        "needs about 2.7 voxels of wall to see both faces, so `accurate` traces 0.25 µm voxels of the same "
-        "wood (the model is a function of position).")
+    if settings["method"] == "exact":
+        add("- **Method.** Table 1 here uses `exact`: rays meet the model's own wall surfaces (the inequalities "
+            "the generator decides each point's phase by), each crossing found to 1e-9 µm with a proven step "
+            "bound and its normal from the model itself (docs/methods.md#the-exact-method). No voxel enters. "
+            "The paper traced 0.5 µm voxels (2-voxel steps, midpoint crossing, a linear SVM normal on 6×6×6 "
+            "voxels): `--method paper`, compared above on the same woods and rays.")
+        add("- **Resolution.** None: thin walls, corners and tips are traced as the model draws them. The voxel "
+            "methods' error on these very scenes is the `accurate` table above (and results/accuracy.md on "
+            "lattices).")
+    else:
+        add(f"- **Method.** Table 1 here uses `{settings['method']}`: exact voxel traversal (no wall skipped) and "
+            "normals from a Gaussian-smoothed wall indicator, on wood generated at half the paper's voxel. "
+            "The paper's method (2-voxel steps, midpoint crossing, a linear SVM on 6×6×6 voxels) is "
+            "`--method paper`; against exact optics on thin-walled lattices it is several times less accurate "
+            "(results/accuracy.md, TRADEOFF.md).")
+        add("- **Resolution.** The paper's 0.5 µm voxel puts 4 voxels across a 2 µm wall; the smoothed normal "
+            "needs about 2.7 voxels of wall to see both faces, so `accurate` traces 0.25 µm voxels of the same "
+            "wood (the model is a function of position).")
     add("- **Statistics.** Every number carries a 95 % interval over woods and rays; the trends above are "
         "paired differences with their own intervals. The paper reports single values.")
     add(f"- **Wood.** The microstructure model follows docs/methods.md#the-microstructure-model; every value is {n_real} realisations "
         "of it, pooled. Switching ray cells or vessels off leaves every other structure where it was "
         "(tests/test_microstructure.py), so studies 5-1 and 5-2 change one factor each.")
     fine = fine_voxel_sentence(fine_voxel_rows(results, n_boot=n_boot))
-    add(_convergence_sentence(results, fine_done=bool(fine)))
+    add(_convergence_sentence(results, fine_done=bool(fine), of_voxels=settings["method"] == "exact"))
     if fine:
         add(fine)
     add("- **Angles.** Measured inside the sample, as the paper's models do; a hazemeter measures in air "
@@ -451,8 +479,9 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     return "\n".join(L)
 
-def _convergence_sentence(results: Path, *, fine_done: bool = False) -> str:
-    """What `make convergence` found (results/convergence.zarr), or that it has not run."""
+def _convergence_sentence(results: Path, *, fine_done: bool = False, of_voxels: bool = False) -> str:
+    """What `make convergence` found (results/convergence.zarr), or that it has not run; ``of_voxels``:
+    Table 1 itself is exact, and these numbers are those of the voxel method it replaced."""
     path = Path(results) / "convergence.zarr"
     if not path.exists():
         return ("- **Convergence.** Not measured value by value yet (`make convergence`); the ray-only "
@@ -467,7 +496,8 @@ def _convergence_sentence(results: Path, *, fine_done: bool = False) -> str:
     n = ds.sizes["value"]
     r, v, lv, hv = (moved("FWHM_R", "rays_4x"), moved("FWHM_R", "voxel_0.5"), moved("FWHM_L", "voxel_0.5"),
                     moved("haze", "voxel_0.5"))
-    return (f"- **Convergence** ([CONVERGENCE.md](CONVERGENCE.md), realisation 0). With 4× the rays FWHM_R moves "
+    what = "Convergence of `accurate`" if of_voxels else "Convergence"
+    return (f"- **{what}** ([CONVERGENCE.md](CONVERGENCE.md), realisation 0). With 4× the rays FWHM_R moves "
             f"by a median {r[0]:.1f} % (resolved for {r[2]} of {n} values). With the wood traced on 0.5 µm "
             f"instead of 0.25 µm voxels FWHM_R moves by a median {v[0]:.1f} % (at most {v[1]:.0f} %, resolved for "
             f"{v[2]} of {n}), haze by {hv[0]:.1f} points, and FWHM_L by a median {lv[0]:.0f} % (resolved for "
@@ -491,8 +521,9 @@ def fine_voxel_sentence(rows: list[dict]) -> str:
                      f"FWHM_R {r['FWHM_R_change']:+.1f} %, haze {r['haze_change']:+.1f} pts)")
     return ("- **FWHM_L on 0.125 µm voxels** (study 5-1, wood realisation 0, the same 1000 rays; "
             "`studies/convergence/study-5-1-0.125um.yaml`), FWHM_L on 0.5 → 0.25 → 0.125 µm voxels: "
-            + "; ".join(parts) + ". FWHM_L still falls as the voxel shrinks, so Table 1's values (0.25 µm) are upper bounds; "
-            "a change between two values is measured on one voxel, but its size may shrink with it too.")
+            + "; ".join(parts) + ". FWHM_L still falls as the voxel shrinks, so `accurate`'s values (0.25 µm) are "
+            "upper bounds; a change between two values is measured on one voxel, but its size may shrink with it "
+            "too.")
 
 def figure_links(markdown: str) -> list[str]:
     """The image paths a report links, relative to its folder."""

@@ -21,7 +21,7 @@ from pipeline.effects import (FIBRE_TIPS, TABLE1, TRADEOFF_TARGETS, cheapest_mee
 from pipeline.figures import open_dataset, sections, structure_label, trajectories
 from pipeline.microstructure.model import tip_wall_angle_deg
 from pipeline.params import build_params
-from pipeline.report import effects_markdown, figure_links, table1_markdown
+from pipeline.report import effects_markdown, figure_links, method_markdown, table1_markdown
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
@@ -426,13 +426,18 @@ def test_the_same_rays_by_both_methods_differ_by_nothing_and_doubled_by_a_hundre
     for name in ("FWHM_R", "FWHM_L", "haze"):
         for b in ("lower", "upper"):
             acc[f"{name}_ci_{b}"] = acc[name]
+    acc.attrs["trace_settings"] = json.dumps({"method": "exact"})
     same = method_rows({"study-x": acc}, {"study-x": acc}, n_boot=20)
     assert same[0]["FWHM_R_change"] == (0.0, (0.0, 0.0))
     pap = _study([(2 * r, r / 5), (2 * r, r / 5)])
     for name in ("FWHM_R", "FWHM_L", "haze"):
         for b in ("lower", "upper"):
             pap[f"{name}_ci_{b}"] = pap[name]
+    pap.attrs["trace_settings"] = json.dumps({"method": "paper"})
     doubled = method_rows({"study-x": acc}, {"study-x": pap}, n_boot=20)
+    assert (doubled[0]["ref"], doubled[0]["other"]) == ("exact", "paper")
+    assert doubled[0]["FWHM_R_other"] == pytest.approx(2 * doubled[0]["FWHM_R_ref"], rel=1e-9)
+    assert method_markdown(doubled)[0].startswith("| study | value | FWHM_R (°): exact · paper | paper − exact |")
     assert doubled[0]["FWHM_R_change"][0] == pytest.approx(100.0, abs=1.0)
     assert doubled[0]["FWHM_L_change"][0] == 0.0 and doubled[0]["rays_common"] == 300
 

@@ -143,7 +143,7 @@ def test_a_surface_methods_rays_are_keyed_without_voxels():
     from pipeline.study.spec import load_study
 
     scene = load_study("studies/table1/study-2.yaml").scenes[0]
-    voxel = rays_record(scene, "somekey")
+    voxel = rays_record(dataclasses.replace(scene, settings=settings_for("accurate")), "somekey")
     surface = rays_record(dataclasses.replace(scene, settings=settings_for("exact")), None)
 
     def names(d):

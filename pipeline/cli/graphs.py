@@ -25,7 +25,9 @@ def add_cluster_options(p) -> None:
 def add_study(sub):
     p = subparser(sub, "study", help="run parameter studies (Table 1) into results/<study>.zarr")
     p.add_argument("files", nargs="+", metavar="FILE.yaml", help="study files, e.g. studies/table1/*.yaml")
-    p.add_argument("--scale", default="paper", help="paper (the study's numbers) or small (quick)")
+    p.add_argument("--scale", default="paper", help="paper (the study's numbers), quick (the same samples and "
+                                                     "woods, a twentieth of the rays) or small (a tenth of the "
+                                                     "thickness; tests)")
     add_cluster_options(p)
     p.add_argument("--results", default="results", help="where <study>.zarr goes (default results)")
     p.add_argument("--shard-rays", default="250", help="rays per tracing task (default 250)")
@@ -116,7 +118,8 @@ def cmd_study(args) -> int:
         print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays x {st.realisations} "
               f"realisation{'' if st.realisations == 1 else 's'}, {st.scenes[0].settings.method}{met})")
         for row in summary_rows(plan):
-            print(f"  {st.dimension}={row['value']}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
+            traced = "" if st.scale == "paper" else f" ({row['thickness_traced_mm']:g} mm traced)"
+            print(f"  {st.dimension}={row['value']}{traced}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
                   f"FWHM_L {row['fwhm_l_deg']:.2f}°, haze {100 * row['haze']:.1f} % "
                   f"[{100 * row['haze_ci'][0]:.1f}, {100 * row['haze_ci'][1]:.1f}], "
                   f"{row['n_transmitted']}/{row['n_rays']} transmitted")
@@ -132,7 +135,8 @@ def cmd_study(args) -> int:
 def add_camera(sub):
     p = subparser(sub, "camera", help="render images through a TW sheet with a thin-lens camera")
     p.add_argument("file", metavar="FILE.yaml", help="camera file, e.g. studies/camera/figure5.yaml")
-    p.add_argument("--scale", default="paper", help="paper (the file's numbers) or small (quick)")
+    p.add_argument("--scale", default="paper", help="paper (the file's numbers), quick (a tenth of the aperture "
+                                                     "samples) or small (also a fifth of the sheet)")
     add_cluster_options(p)
     p.add_argument("--results", default="results/camera",
                    help="where the Dataset and PNGs go (default results/camera)")

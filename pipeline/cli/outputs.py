@@ -8,6 +8,7 @@ from pathlib import Path
 
 from .. import limits
 from ..params import ParameterError
+from ..study.spec import SCALES
 from .args import out_path, subparser
 
 
@@ -25,7 +26,7 @@ def add_cache(sub):
                         "studies/)")
     p.add_argument("--cache", default="results/cache", help="cache directory (default results/cache)")
     p.add_argument("--scale", action="append", default=None,
-                   help="gc: scale whose entries are kept, repeatable (default: paper and small)")
+                   help="gc: scale whose entries are kept, repeatable (default: every scale)")
     p.add_argument("--dry-run", action="store_true", help="gc: list what would be removed, remove nothing")
     p.add_argument("--remove", action="store_true", help="verify: also remove the damaged entries")
     p.add_argument("--json", action="store_true", help="ls: one JSON object per line")
@@ -68,7 +69,7 @@ def cmd_cache(args) -> int:
     if not files:
         raise ParameterError("`files` must name the study and camera files whose entries to keep "
                              "(no studies/ folder here)")
-    scales = args.scale or ["paper", "small"]
+    scales = args.scale or list(SCALES)
     keep = inventory.keys_in_use(files, scales, cache)
     # Only twray's own entries are removed: anything else found there is named and left.
     for e in entries:

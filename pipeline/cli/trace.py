@@ -38,8 +38,8 @@ def add_trace(sub):
                    help="beam direction in air as angles R,L [degree] of its projections on the R-T and "
                         "L-T planes from +T (default 0,0: perpendicular to the L-R face); the beam "
                         "refracts into the sample, and haze is measured from this direction")
-    p.add_argument("--method", default="accurate", help="paper, fast, accurate or exact (generated wood and "
-                                                        "references only)")
+    p.add_argument("--method", default=None, help="paper, fast, accurate or exact (default: exact for generated "
+                                                  "wood and references, accurate for a --volume)")
     p.add_argument("--exit", default="internal", help="angles inside the sample (internal) or in air")
     p.add_argument("--fresnel", action="store_true", help="partial Fresnel reflection")
     p.add_argument("--step-vox", default=None, help="paper marching step [voxels] (default 2)")
@@ -80,6 +80,8 @@ def cmd_trace(args) -> int:
     beam_um = number(args.beam_um, "beam_um")
     if not beam_um > 0:
         raise ParameterError(f"`beam_um` must be > 0 µm, got beam_um={beam_um:g}")
+    if args.method is None:
+        args.method = "accurate" if args.volume else "exact"  # a scan has voxels only
     changes = {"exit": args.exit}
     if args.step_vox is not None:
         changes["step_vox"] = number(args.step_vox, "step_vox")

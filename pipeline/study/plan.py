@@ -35,7 +35,7 @@ from .. import __version__, versions
 from ..cache import DamagedEntry, cache_key, check_json, check_npz, read_json, sound
 from ..microstructure.store import CHUNKS, WoodChunkStore, wood_record
 from ..optics.trace import next_rays
-from .spec import Scene, Study, with_rays
+from .spec import SCALES, Scene, Study, with_rays
 
 N_BOOT = 200
 
@@ -274,7 +274,8 @@ def summary_rows(plan: Plan) -> list[dict]:
     """The pooled numbers of each value (its realisations pooled), with the value, in the
     study's order."""
     coord = plan.study.coordinate()
-    return [{"value": coord[pool.scene_index], **read_entry(pool)} for pool in plan.pools]
+    return [{"value": coord[pool.scene_index], "thickness_traced_mm": plan.study.scenes[pool.scene_index].thickness_um
+             / 1000.0, **read_entry(pool)} for pool in plan.pools]
 
 
 def ray_sampling(row: dict) -> dict:
@@ -294,21 +295,29 @@ def read_entry(entry) -> dict:
 
 def report_table(plans: list[Plan]) -> str:
     """A Markdown table of FWHM_R, FWHM_L and haze for every value of every study."""
-    lines = ["| study | parameter | value | FWHM_R (°) [95 % CI] | FWHM_L (°) [95 % CI] | haze (%) [95 % CI] "
-             "| transmitted |", "|---|---|---|---|---|---|---|"]
+    lines = ["| study | parameter | value | thickness traced (mm) | FWHM_R (°) [95 % CI] | FWHM_L (°) [95 % CI] "
+             "| haze (%) [95 % CI] | transmitted |", "|---|---|---|---|---|---|---|---|"]
     for plan in plans:
         st = plan.study
         for row in summary_rows(plan):
             r, lo = row["fwhm_r_ci_deg"], row["fwhm_l_ci_deg"]
             lines.append(
-                f"| {st.name} | {st.dimension} | {row['value']} | {row['fwhm_r_deg']:.2f} "
+                f"| {st.name} | {st.dimension} | {row['value']} | {row['thickness_traced_mm']:g} | "
+                f"{row['fwhm_r_deg']:.2f} "
                 f"[{r[0]:.2f}, {r[1]:.2f}] | {row['fwhm_l_deg']:.2f} [{lo[0]:.2f}, {lo[1]:.2f}] | "
                 f"{100 * row['haze']:.1f} [{100 * row['haze_ci'][0]:.1f}, {100 * row['haze_ci'][1]:.1f}] | "
                 f"{row['n_transmitted']}/{row['n_rays']} |")
     s0 = plans[0].study.scenes[0]
     n_real = plans[0].study.realisations
     lines.append("")
-    lines.append(f"twray {__version__}, scale {plans[0].study.scale}, {s0.rays} rays on each of "
+    scale = plans[0].study.scale
+    if scale != "paper":
+        f = SCALES[scale]
+        lines.append(f"Scale {scale} is not the paper's: each sample is {f['thickness']:g} of the thickness in "
+                     f"`value`/the study file (the traced thickness is in its own column), the beam "
+                     f"{f['beam']:g} of its side ({s0.beam_um:g} µm), {f['rays']:g} of its rays.")
+        lines.append("")
+    lines.append(f"twray {__version__}, scale {scale}, {s0.rays} rays on each of "
                  f"{n_real} wood realisation{'' if n_real == 1 else 's'} (seeds {s0.seed}-{s0.seed + n_real - 1}, "
                  f"pooled; intervals include the wood-to-wood variation), method "
                  f"{s0.settings.method}, angles {s0.settings.exit}.")
