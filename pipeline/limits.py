@@ -115,13 +115,27 @@ def wood_voxels(beam_um: float, thickness_um: float, voxel_um: float) -> float:
     return SPREAD * side * side * depth
 
 
+def surface_region_bytes(beam_um: float, thickness_um: float, pitch_um: float) -> float:
+    """Memory of what ``exact`` builds for generated wood around a beam: the distortion grid (2
+    doubles every pitch/16 in R and T, held as tiles, as the region's patch and its padded copy)
+    over the beam, its margins and a rotated ply's diagonal (docs/methods.md#the-exact-method)."""
+    from .optics.wood_surface import FIRST_MARGIN_UM
+
+    grid = pitch_um / 16.0
+    side = math.sqrt(2.0) * (beam_um + 2.0 * (FIRST_MARGIN_UM + 0.05 * thickness_um)) + 2.0
+    return 3.0 * 16.0 * (side / grid + 2) * ((thickness_um + 2.0) / grid + 2)
+
+
 def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: float, pitch_um: float,
-                   method: str, wood: bool = True, store: bool = False) -> Estimate:
-    """One beam traced in one process (``wood``: generated as rays reach it; ``store``: kept on disk)."""
+                   method: str, wood: bool = True, store: bool = False, generated: bool = True) -> Estimate:
+    """One beam traced in one process (``wood``: generated as rays reach it; ``store``: kept on disk;
+    ``generated``: the model's wood, not a reference lattice)."""
     interfaces = rays * INTERFACES_PER_PITCH * thickness_um / pitch_um
     voxels = wood_voxels(beam_um, thickness_um, voxel_um) if wood and METHODS[method] == "voxels" else 0.0
     cpu = interfaces * INTERFACE_CPU_S.get(method, INTERFACE_CPU_S["accurate"]) + voxels / GENERATE_VOXELS_PER_CPU_S
     memory = BASE_MEMORY + rays * RAY_BYTES + (0 if store else voxels * MEMORY_BYTES_PER_WOOD_VOXEL)
+    if generated and METHODS.get(method) == "surfaces":
+        memory += surface_region_bytes(beam_um, thickness_um, pitch_um)
     return Estimate(cpu, memory, voxels * DISK_BYTES_PER_VOXEL if store else 0.0)
 
 
@@ -138,7 +152,7 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
             woods[key] = max(woods.get(key, 0.0), wood_voxels(s.beam_um, s.thickness_um, voxel))
         shard = trace_estimate(rays=min(s.rays, shard_rays), beam_um=s.beam_um, thickness_um=s.thickness_um,
                                voxel_um=voxel, pitch_um=s.pitch_um, method=s.settings.method,
-                               wood=False, store=True)
+                               wood=False, store=True, generated=s.wood is not None)
         n_shards = math.ceil(s.rays / shard_rays)
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))

@@ -103,7 +103,8 @@ def medium_of(job: TraceJob):
     rays = job.rays if job.target is None else job.target.max_rays
     return medium, centre, limits.trace_estimate(rays=rays, beam_um=job.beam_um, thickness_um=thickness_um,
                                                  voxel_um=voxel, pitch_um=pitch, method=job.settings.method,
-                                                 wood=not job.volume)
+                                                 wood=not job.volume,
+                                                 generated=not job.volume and job.reference is None)
 
 
 def run(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:

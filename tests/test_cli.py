@@ -224,7 +224,7 @@ def test_trace_user_volume_npy_index_matched(tmp_path, capsys):
     assert code == 0, err
     s = json.loads(stdout)
     assert s["n_transmitted"] == 50 and s["fwhm_r_deg"] == 0.0 and s["haze"] == 0.0
-    assert s["interfaces_per_ray"] == 2.0
+    assert s["interfaces_per_ray"] == 2.0 and s["method"] == "accurate"  # a scan's default: it has voxels only
 
 
 def test_a_user_volume_is_traced_on_its_own_voxels(tmp_path, capsys):
@@ -425,7 +425,7 @@ def test_trace_exact_on_generated_wood_reads_no_voxels_and_a_volume_is_refused(t
     import json
 
     code, stdout, err = run(capsys, "trace", "--preset", "birch", "--thickness-mm", "0.05", "--delta-ri", "0.01",
-                            "--rays", "40", "--beam-um", "40", "--method", "exact", "--json")
+                            "--rays", "40", "--beam-um", "40", "--json")  # exact: the default for generated wood
     assert code == 0, err
     s = json.loads(stdout)
     assert s["method"] == "exact" and s["voxels_generated"] == 0 and s["n_transmitted"] + s["n_lost"] == 40

@@ -6,6 +6,7 @@ import dataclasses
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline import limits
@@ -142,6 +143,26 @@ def test_a_trace_costs_its_interfaces_at_the_methods_rate_and_the_wood_it_genera
     # Twice the thickness: twice the interfaces.
     thick = trace_estimate(method="fast", wood=False, **{**kw, "thickness_um": 290.0})
     assert thick.cpu_s == pytest.approx(2 * trace_estimate(method="fast", wood=False, **kw).cpu_s)
+
+
+@pytest.mark.parametrize("preset, overrides, thickness_um", [
+    ("birch", {}, 300.0), ("balsa", {}, 1000.0), ("birch", {"laminate": [0, -45, 90, 45, 0]}, 500.0)])
+def test_exact_holds_the_region_it_builds_and_its_estimate_covers_it(preset, overrides, thickness_um):
+    """What ``exact`` keeps for generated wood (distortion grid, bounds, vessels), measured on the
+    region it builds around a 150 µm beam, is within the estimate, and the estimate within 4× of it."""
+    from pipeline.microstructure.region import region_context
+    from pipeline.optics.wood_surface import FIRST_MARGIN_UM
+
+    p = build_params(preset, overrides=overrides)
+    half = 75.0 + FIRST_MARGIN_UM + 0.05 * thickness_um
+    ctx = region_context(p, 1, thickness_um, (-half, half), (-half, half))
+    held = sum(v.nbytes for v in ctx.values() if isinstance(v, np.ndarray))
+    est = limits.surface_region_bytes(150.0, thickness_um, p.fibre_diameter_um)
+    assert held <= est <= 4 * held
+    kw = {"rays": 100, "beam_um": 150.0, "thickness_um": thickness_um, "voxel_um": 0.5,
+          "pitch_um": p.fibre_diameter_um, "method": "exact"}
+    assert trace_estimate(**kw).memory == limits.BASE_MEMORY + 100 * limits.RAY_BYTES + est
+    assert trace_estimate(**kw, generated=False).memory == limits.BASE_MEMORY + 100 * limits.RAY_BYTES  # a lattice
 
 
 def _scene(**changes) -> Scene:

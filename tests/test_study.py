@@ -18,7 +18,7 @@ from pipeline.params import ParameterError, build_params
 from pipeline.cache import atomic_write as _atomic_write
 from pipeline.study.dataset import study_dataset, write_dataset
 from pipeline.study.graph import compute
-from pipeline.study.plan import plan_study
+from pipeline.study.plan import plan_study, report_table
 from pipeline.study.spec import load_study
 
 TABLE1 = Path(__file__).resolve().parent.parent / "studies" / "table1"
@@ -55,8 +55,8 @@ def client():
         yield c
 
 
-def run(path, cache, results, client, *, shard_rays=250):
-    study = load_study(path, scale="small")
+def run(path, cache, results, client, *, shard_rays=250, method=None):
+    study = load_study(path, scale="small", method=method)
     plan = plan_study(study, cache, shard_rays=shard_rays)
     report = compute([plan], client)
     plan = plan_study(study, cache, shard_rays=shard_rays)
@@ -95,8 +95,12 @@ def test_table1_files_expand_to_the_papers_values():
 
 
 def test_studies_share_the_wood_and_scenes_they_have_in_common(tmp_path):
-    plans = {n: plan_study(load_study(TABLE1 / f"{n}.yaml", scale="small"), tmp_path)
-             for n in ("study-1", "study-2", "study-3", "study-5-1", "study-5-2", "study-6")}
+    names = ("study-1", "study-2", "study-3", "study-5-1", "study-5-2", "study-6")
+    exact = {n: plan_study(load_study(TABLE1 / f"{n}.yaml", scale="small"), tmp_path) for n in names}
+    assert all(p.study.scenes[0].settings.method == "exact" and not p.micros for p in exact.values())
+    # The woods are shared as voxel chunks by a voxel method, and as scenes by every method.
+    plans = {n: plan_study(load_study(TABLE1 / f"{n}.yaml", scale="small", method="accurate"), tmp_path)
+             for n in names}
     assert all(p.study.realisations == 2 for p in plans.values())  # at most 2 at scale small
     base = set(plans["study-1"].micros)
     assert len(base) == 2  # every thickness reads the same two woods (common random numbers)
@@ -113,6 +117,19 @@ def test_studies_share_the_wood_and_scenes_they_have_in_common(tmp_path):
     assert key["study-1"][3, 0] != key["study-1"][3, 1]
     assert pool["study-1"][3] == pool["study-2"][3] == pool["study-5-1"][0]
     assert key["study-5-1"][1, 0] not in key["study-2"].values()
+    ex = {n: {(s.scene_index, s.realisation): s.key for s in exact[n].summaries} for n in exact}
+    for r in (0, 1):
+        assert ex["study-1"][3, r] == ex["study-2"][3, r] == ex["study-5-1"][0, r] != key["study-1"][3, r]
+        assert ex["study-6"][0, r] == ex["study-1"][1, r]
+
+
+def test_scale_quick_traces_the_papers_samples_and_woods_with_a_twentieth_of_the_rays():
+    for name in ("study-1", "study-6"):
+        paper, quick = (load_study(TABLE1 / f"{name}.yaml", scale=s) for s in ("paper", "quick"))
+        assert quick.realisations == paper.realisations == 5
+        for p, q in zip(paper.scenes, quick.scenes):
+            assert (q.thickness_um, q.beam_um, q.wood, q.settings) == (p.thickness_um, p.beam_um, p.wood, p.settings)
+            assert (p.rays, q.rays) == (1000, 50)
 
 
 @pytest.mark.parametrize("text, needle", [
@@ -122,8 +139,9 @@ def test_studies_share_the_wood_and_scenes_they_have_in_common(tmp_path):
     ("rays: -4\n", "line 1: `rays` must be a positive integer"),
     ("thickness_mm: thick\n", "line 1: `thickness_mm` must be a number"),
     ("wood:\n  wall_thickness_um: 12\n", "`wall_thickness_um` must be < "),
-    ("trace:\n  refine: 0\n", "line 2: `trace.refine` must be an integer in [1, 8]"),
-    ("trace:\n  refine: 2.5\n", "line 2: `trace.refine` must be an integer in [1, 8]"),
+    ("trace:\n  method: accurate\n  refine: 0\n", "line 3: `trace.refine` must be an integer in [1, 8]"),
+    ("trace:\n  method: accurate\n  refine: 2.5\n", "line 3: `trace.refine` must be an integer in [1, 8]"),
+    ("trace:\n  refine: 2\n", "line 2: `trace.refine` applies to the voxel methods, not to method 'exact'"),
 ])
 def test_bad_study_files_name_file_line_and_field(tmp_path, text, needle, capsys):
     path = tmp_path / "bad.yaml"
@@ -232,9 +250,16 @@ def test_a_failed_cache_write_leaves_no_entry(tmp_path):
 # ---------------------------------------------------------------------- pipeline on a LocalCluster
 def test_study_2_small_gives_six_finite_values_on_two_woods(tmp_path, client):
     cache = tmp_path / "cache"
-    out, report, plan = run(TABLE1 / "study-2.yaml", cache, tmp_path / "results", client)
+    out, report, plan = run(TABLE1 / "study-2.yaml", cache, tmp_path / "results", client, method="accurate")
     assert out == tmp_path / "results" / "study-2.zarr"
     ds = xr.open_zarr(out, consolidated=False).load()
+    # What was traced, not the study's numbers: 1 mm at scale small is 0.1 mm.
+    assert np.all(ds.thickness_traced.values == 0.1) and ds.thickness_traced.attrs["units"] == "mm"
+    assert ds.attrs["beam_traced_um"] == 37.5
+    table = report_table([plan]).splitlines()
+    assert table[0].startswith("| study | parameter | value | thickness traced (mm) |")
+    assert all(row.split(" | ")[3] == "0.1" for row in table[2:8])
+    assert any(line.startswith("Scale small is not the paper's") for line in table)
     assert ds.sizes == {"delta_ri": 6, "realisation": 2, "ray": 100}
     assert list(ds.seed_of_realisation.values) == [1, 2] and ds.attrs["realisations"] == 2
     for name in ("FWHM_R", "FWHM_L", "haze", "FWHM_R_ci_lower", "FWHM_R_ci_upper",

@@ -313,9 +313,14 @@ def report_table(plans: list[Plan]) -> str:
     scale = plans[0].study.scale
     if scale != "paper":
         f = SCALES[scale]
-        lines.append(f"Scale {scale} is not the paper's: each sample is {f['thickness']:g} of the thickness in "
-                     f"`value`/the study file (the traced thickness is in its own column), the beam "
-                     f"{f['beam']:g} of its side ({s0.beam_um:g} µm), {f['rays']:g} of its rays.")
+        parts = [f"{f['rays']:g} of the study files' rays"]
+        if f["thickness"] != 1.0:
+            parts.append(f"{f['thickness']:g} of their thickness (the column `thickness traced`)")
+        if f["beam"] != 1.0:
+            parts.append(f"{f['beam']:g} of their beam's side ({s0.beam_um:g} µm)")
+        if f["realisations"] is not None:
+            parts.append(f"at most {f['realisations']} woods")
+        lines.append(f"Scale {scale} is not the paper's: it traces " + ", ".join(parts) + ".")
         lines.append("")
     lines.append(f"twray {__version__}, scale {scale}, {s0.rays} rays on each of "
                  f"{n_real} wood realisation{'' if n_real == 1 else 's'} (seeds {s0.seed}-{s0.seed + n_real - 1}, "
