@@ -72,12 +72,23 @@ def render(doc: dict) -> str:
     md += ["", "## Table 1 end to end", ""]
     if s:
         t1 = s["table1_small"]
-        md.append(f"Every Table 1 study at `--scale small`, one `twray study` call on a local cluster: cold "
+        md.append(f"Every Table 1 study at `--scale small` (`{t1.get('method', 'accurate')}`), one `twray study` "
+                  f"call on a local cluster: cold "
                   f"{t1['cold_s']:.1f} s, warm (nothing to compute) {t1['warm_s']:.2f} s.")
+        tq = s.get("table1_quick")
+        if tq:
+            md.append(f"At `--scale quick` (`make table1`, the quick start: the paper's samples and 5 woods, 50 rays "
+                      f"a wood, `{tq.get('method', 'accurate')}`): cold {tq['cold_s']:.1f} s, warm {tq['warm_s']:.2f} s.")
         tp = s.get("table1_paper")
         if tp:
-            md.append(f"At paper scale (`make table1`, `make bench-table1-paper`), cold: {tp['cold_s'] / 60:.1f} min, "
-                      f"{tp['cpu_s'] / 60:.1f} CPU-min.")
+            cpu = f", {tp['cpu_s'] / 60:.1f} CPU-min" if "cpu_s" in tp else ""
+            how = f" ({tp['how']})" if "how" in tp else ""
+            md.append(f"At paper scale (`make table1 SCALE=paper YES=1`, `make bench-table1-paper`) with "
+                      f"`{tp.get('method', 'accurate')}`, cold: {tp['cold_s'] / 60:.1f} min{cpu}{how}.")
+            old = tp.get("accurate")
+            if old:
+                md.append(f"With `accurate`, as Table 1 was traced before: {old['cold_s'] / 60:.1f} min, "
+                          f"{old['cpu_s'] / 60:.1f} CPU-min.")
         p = s.get("paper_scene")
         if p:
             md.append(f"A paper-scale scene (1 mm birch, `accurate`), {p['rays']} rays: {p['seconds']} s, of which "

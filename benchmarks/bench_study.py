@@ -10,6 +10,8 @@ Writes the "study" section of results/bench.json:
   of 2 threads and 2 workers of 1 thread;
 - thickness: one cold trace (accurate, 200 rays, birch, ΔRI 0.01) through
   0.25, 0.5 and 1 mm: seconds, chunks generated, interfaces per ray;
+- table1_quick: the same at --scale quick (`make table1`, the quick start: the paper's
+  samples and woods, a twentieth of the rays), cold and warm;
 - table1_paper (only with --paper, which runs nothing else and keeps the
   other keys): every Table 1 study at paper scale in a fresh cache, as
   `make table1` runs it: wall and CPU seconds of the whole command;
@@ -71,8 +73,8 @@ def thickness() -> dict:
     return out
 
 
-def table1_small(tmp: Path) -> dict:
-    cmd = _table1_cmd(tmp / "cache", tmp / "results")
+def table1_small(tmp: Path, scale: str = "small") -> dict:
+    cmd = _table1_cmd(tmp / "cache", tmp / "results", scale=scale)
     out = {}
     for run in ("cold", "warm"):
         t0 = time.perf_counter()
@@ -127,19 +129,24 @@ def main() -> None:
                     help="only time Table 1 at paper scale, cold (about an hour on 2 cores)")
     ap.add_argument("--small", action="store_true",
                     help="only time Table 1 at small scale, cold and warm (a few minutes)")
+    ap.add_argument("--quick", action="store_true",
+                    help="only time Table 1 at quick scale (`make table1`), cold and warm (a few minutes)")
     args = ap.parse_args()
-    if args.paper or args.small:
+    if args.paper or args.small or args.quick:
         out = Path(args.out)
         section = json.loads(out.read_text()).get("study", {}) if out.exists() else {}
         with tempfile.TemporaryDirectory() as tmp:
             if args.paper:
-                section["table1_paper"] = table1_paper(Path(tmp))
+                section["table1_paper"] = {**table1_paper(Path(tmp)), "method": "exact"}
+            elif args.quick:
+                section["table1_quick"] = {**table1_small(Path(tmp), "quick"), "method": "exact"}
             else:
-                section["table1_small"] = table1_small(Path(tmp))
+                section["table1_small"] = {**table1_small(Path(tmp)), "method": "exact"}
         write_section(args.out, "study", section)
         return
     with tempfile.TemporaryDirectory() as tmp:
-        result = {"table1_small": table1_small(Path(tmp)),
+        result = {"table1_small": {**table1_small(Path(tmp)), "method": "exact"},
+                  "table1_quick": {**table1_small(Path(tmp) / "quick", "quick"), "method": "exact"},
                   "paper_scene": paper_scene(Path(tmp), args.rays),
                   "workers": workers(Path(tmp)),
                   "thickness": thickness(),

@@ -558,10 +558,9 @@ def test_the_committed_datasets_are_the_paper_scale_table1_over_five_woods_by_bo
 
 
 def test_flat_fibre_ends_in_the_fibre_tip_studies_are_the_table1_woods_ray_for_ray():
-    """λ = 0 is the wood of Table 1 (the same cache key): its rays are those of study 5-1 traced
-    with `accurate`, with and without ray cells, bit for bit; every tipped value is traced on the
-    same seeds."""
-    with xr.open_zarr(RESULTS / "paper" / "accurate" / "study-5-1.zarr") as ref:
+    """λ = 0 is the wood of Table 1 (the same cache key): its rays are those of study 5-1, with
+    and without ray cells, bit for bit; every tipped value is traced on the same seeds."""
+    with xr.open_zarr(RESULTS / "paper" / "study-5-1.zarr") as ref:
         for name, ray_cells in zip(FIBRE_TIPS, (True, False)):
             with xr.open_zarr(RESULTS / "paper" / "fibre-tips" / f"{name}.zarr") as ds:
                 assert list(ds.fibre_tip.values) == [0, 75, 150, 300]
@@ -597,6 +596,22 @@ def test_every_fibre_tip_number_in_the_report_is_its_dataset_value(report_text):
                 est, _, _ = _assert_interval_and_mark(change)
                 a, b = float(ds[var][0]), float(ds[var][k])
                 assert _shown(est, 100 * (b - a) if var == "haze" else 100 * (b / a - 1), 1), (name, k, var)
+
+
+def test_the_balsa_reading_sentence_holds_both_readings_datasets(report_text):
+    """35.2 µm read as a radius (70.4 µm cells) beside the preset's diameter reading: each wall's
+    haze and FWHM_R as stored, on the same seeds."""
+    radius = open_dataset(PAPER / "experiment" / "balsa-1mm-radius.zarr")
+    diameter = open_dataset(PAPER / "experiment" / "balsa-1mm.zarr")
+    assert [s["wood"]["fibre_diameter_um"] for s in json.loads(radius.attrs["scenes"])] == [70.4, 70.4]
+    assert list(radius.seed_of_realisation.values) == list(diameter.seed_of_realisation.values)
+    line = next(ln for ln in report_text.splitlines() if ln.startswith("The source's \"fibre radius"))
+    dim = radius["FWHM_R"].dims[0]
+    for k in range(radius.sizes[dim]):
+        wall = float(radius[dim][k])
+        assert (f"{wall:g} µm walls: haze {100 * float(radius.haze[k]):.1f} [" in line
+                and f"against {100 * float(diameter.haze[k]):.1f} [" in line
+                and f"FWHM_R {float(radius.FWHM_R[k]):.2f}° against {float(diameter.FWHM_R[k]):.2f}°" in line), line
 
 
 def test_tip_wall_angle_is_the_lumen_half_width_over_the_tip_length():
