@@ -1,5 +1,6 @@
 """Studies: YAML schema, cached incremental Dask graphs on a real LocalCluster, Datasets."""
 
+import dataclasses
 import json
 import re
 import os
@@ -121,6 +122,22 @@ def test_studies_share_the_wood_and_scenes_they_have_in_common(tmp_path):
     for r in (0, 1):
         assert ex["study-1"][3, r] == ex["study-2"][3, r] == ex["study-5-1"][0, r] != key["study-1"][3, r]
         assert ex["study-6"][0, r] == ex["study-1"][1, r]
+
+
+def test_the_convergence_benchmark_varies_accurates_rays_and_voxel_alone():
+    """`make convergence` measures the voxel method Table 1 used before `exact`: 4× the rays, or
+    the study voxel traced as it is (refine 1) instead of halved, everything else the same."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("convergence", TABLE1.parent.parent / "benchmarks" / "convergence.py")
+    conv = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(conv)
+    for name, st in conv.studies_of("small").items():
+        base, more, coarse = (conv.variant(st, v) for v in conv.VARIANTS)
+        assert st.realisations == 1 and all(s.settings.method == "accurate" for s in st.scenes), name
+        for b, m, c in zip(base.scenes, more.scenes, coarse.scenes):
+            assert (b.trace_voxel_um, c.trace_voxel_um) == (0.25, 0.5) and m.rays == 4 * b.rays
+            assert dataclasses.replace(c, settings=b.settings) == b and dataclasses.replace(m, rays=b.rays) == b
 
 
 def test_scale_quick_traces_the_papers_samples_and_woods_with_a_twentieth_of_the_rays():
