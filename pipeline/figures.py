@@ -409,9 +409,9 @@ def make_figures(results: Path, out: Path, *, which: set[str] | None = None, log
         ds = datasets["study-1"]
         rec = max(scene_records(ds), key=lambda r: r["thickness_um"])
         points, status = trajectories(rec)
-        v = traced_voxel(rec)
+        grid = "" if rec["settings"].get("voxel", {}) is None else f", {traced_voxel(rec):g} µm voxels"
         caption = (f"{len(points)} rays through {rec['thickness_um'] / 1000:g} mm of birch TW "
-                   f"(ΔRI {rec['delta_ri']:g}, method {rec['settings']['method']}, {v:g} µm voxels), "
+                   f"(ΔRI {rec['delta_ri']:g}, method {rec['settings']['method']}{grid}), "
                    f"the thickest sample of {ds.attrs['title']}")
         made.append(plot_trajectories(points, status, caption, out / "trajectories.png"))
         log(f"wrote {made[-1]}")
