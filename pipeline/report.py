@@ -108,12 +108,15 @@ def method_summary(rows: list[dict]) -> str:
 def balsa_reading_sentence(radius, diameter) -> str:
     """The balsa sample with its quoted 35.2 µm read as a radius (70.4 µm cells) beside the preset's
     reading as a diameter, value by value (walls)."""
+    def haze(one) -> str:
+        return _with_ci(100 * float(one["haze"]), (100 * float(one["haze_ci_lower"]),
+                                                    100 * float(one["haze_ci_upper"])), 1)
+
+    dim = study_dimension(radius)
     parts = []
-    for k in range(radius.sizes[study_dimension(radius)]):
-        a, b = radius.isel({study_dimension(radius): k}), diameter.isel({study_dimension(diameter): k})
-        wall = float(a[study_dimension(radius)])
-        parts.append(f"{wall:g} µm walls: haze {_with_ci(100 * float(a['haze']), (100 * float(a['haze_ci_lower']), 100 * float(a['haze_ci_upper'])), 1)} % "
-                     f"against {_with_ci(100 * float(b['haze']), (100 * float(b['haze_ci_lower']), 100 * float(b['haze_ci_upper'])), 1)} %, "
+    for k in range(radius.sizes[dim]):
+        a, b = radius.isel({dim: k}), diameter.isel({dim: k})
+        parts.append(f"{float(a[dim]):g} µm walls: haze {haze(a)} % against {haze(b)} %, "
                      f"FWHM_R {float(a['FWHM_R']):.2f}° against {float(b['FWHM_R']):.2f}°")
     return ("The source's \"fibre radius of around 35.2 µm\" can also be read as a radius: 70.4 µm cells "
             "(`studies/experiment/balsa-1mm-radius.yaml`, angles inside, the same seeds and beam). Against the "
@@ -278,8 +281,9 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     tips = fibre_tip_rows(base, n_boot=n_boot)
     paper_tables = load_table1(base / "paper-method")
     methods = method_rows(tables, paper_tables, n_boot=n_boot)
-    voxel_dir = base / "accurate"
-    voxel_rows = method_rows(tables, load_table1(voxel_dir), n_boot=n_boot) if voxel_dir.exists() else []
+    voxel_dir = base / "accurate"  # Table 1 as traced with `accurate`, where it is now exact
+    voxel_tables = load_table1(voxel_dir) if voxel_dir.exists() else None
+    voxel_rows = method_rows(tables, voxel_tables, n_boot=n_boot) if voxel_tables else []
     p1 = paper_tables["study-1"]
     s1 = tables["study-1"]
     n_real = s1.sizes.get("realisation", 1)
@@ -302,8 +306,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         f"method `{settings['method']}` "
         + (f"(wood traced on {traced_voxel(json.loads(s1.attrs['scenes'])[0]):g} µm voxels), "
            if settings["method"] != "exact" else "(the model's own surfaces, no voxels), ")
-        + 
-        f"angles {s1.attrs['exit_angles']} (inside the sample).")
+        + f"angles {s1.attrs['exit_angles']} (inside the sample).")
     add("")
     add("## The microstructures")
     add("")
@@ -370,7 +373,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         "geometrical optics predicts, not with the paper's numbers.")
     add("")
     if voxel_rows:
-        v1 = load_table1(voxel_dir)["study-1"]
+        v1 = voxel_tables["study-1"]
         add(f"## `{voxel_rows[0]['other']}` beside `{voxel_rows[0]['ref']}`: the voxel error on the wood itself")
         add("")
         add(f"Table 1 as traced with `{voxel_rows[0]['other']}` (wood on "
