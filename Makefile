@@ -108,6 +108,8 @@ bench-camera: install
 bench-accuracy: install
 	$(BIN)/python benchmarks/bench_accuracy.py --out results/accuracy.json
 
-## Speed against accuracy of every setting -> results/tradeoff.zarr, results/TRADEOFF.md, results/figures/tradeoff.png.
+## Speed against accuracy of every setting, on lattices and on the wood against `exact` -> results/tradeoff.zarr,
+## results/TRADEOFF.md, results/figures/tradeoff.png and the wood section of results/accuracy.md.
 tradeoff: install
 	$(BIN)/python benchmarks/bench_tradeoff.py --results results
+	$(BIN)/python benchmarks/bench_accuracy.py --render --out results/accuracy.json

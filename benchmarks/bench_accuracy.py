@@ -187,6 +187,21 @@ def refinement_md(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def wood_section(tradeoff: Path) -> list[str]:
+    """The voxel methods against `exact` on the wood itself, as `make tradeoff` measured them
+    (results/tradeoff.json; traced there once, shown here beside the lattices)."""
+    if not tradeoff.exists():
+        return []
+    import bench_tradeoff
+
+    rows = json.loads(tradeoff.read_text())["rows"]
+    return ["## On the wood itself: every voxel method against `exact`", "",
+            "The lattices above stand in for wood; with `exact` the wood model has its own exact answer. "
+            "From `make tradeoff` (details and costs in TRADEOFF.md): one wood per scene, a 150 µm beam, the bias "
+            "of each setting against `exact` on the same rays with the 95 % interval of a paired bootstrap "
+            "(FWHM in %, haze in points).", "", *bench_tradeoff.wood_errors_md(rows)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="results/accuracy.json")
@@ -252,6 +267,7 @@ def write(doc: dict, out: Path) -> None:
         sel = [r for r in noise if r["normal_noise_deg"] == deg]
         md.append(f"| {deg:g} | {100 * math.sqrt(np.mean([r['fwhm_r_error'] ** 2 for r in sel])):.0f} % | "
                   f"{math.sqrt(np.mean([r['haze_error_points'] ** 2 for r in sel])):.1f} |")
+    md += ["", *wood_section(out.parent / "tradeoff.json")]
     out.with_suffix(".md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
