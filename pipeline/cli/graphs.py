@@ -119,7 +119,7 @@ def cmd_study(args) -> int:
               f"realisation{'' if st.realisations == 1 else 's'}, {st.scenes[0].settings.method}{met})")
         for row in summary_rows(plan):
             traced = "" if st.scale == "paper" else f" ({row['thickness_traced_mm']:g} mm traced)"
-            print(f"  {st.dimension}={row['value']}{traced}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
+            print(f"  {row['label']}{traced}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
                   f"FWHM_L {row['fwhm_l_deg']:.2f}°, haze {100 * row['haze']:.1f} % "
                   f"[{100 * row['haze_ci'][0]:.1f}, {100 * row['haze_ci'][1]:.1f}], "
                   f"{row['n_transmitted']}/{row['n_rays']} transmitted")

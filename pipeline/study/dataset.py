@@ -17,7 +17,7 @@ from .tasks import load_rays
 def study_dataset(plan: Plan):
     """The study's xarray Dataset from its cached entries.
 
-    Dimensions: the varied parameter, ``realisation`` (the wood drawn with seed
+    Dimensions: the varied parameter (one per parameter of a grid), ``realisation`` (the wood drawn with seed
     ``seed + realisation``) and ``ray``.  FWHM_R, FWHM_L and haze are the
     realisations pooled, with intervals that include the wood-to-wood variation
     (``*_ci_lower``/``*_ci_upper``) and of the ray sampling alone
@@ -88,15 +88,24 @@ def study_dataset(plan: Plan):
                  for name, (get, ln, u) in per_realisation.items()})
     data.update({name: ((dim, "realisation", "ray"), np.array([[get(r) for r in row] for row in rays]), attrs)
                  for name, (get, attrs) in per_ray.items()})
-    coord = st.coordinate()
-    if any(isinstance(c, str) for c in coord):
-        coord = np.array(coord, dtype=object)  # variable-length strings (laminate notation)
+    data["thickness_traced"] = (dim, np.array([s.thickness_um / 1000.0 for s in st.scenes]), {
+        "long_name": "TW sample thickness traced along T", "units": "mm"})
+    # A grid: the values' dimension becomes one per varied parameter (the scenes are in C order).
+    dims = tuple(a.dimension for a in st.axes)
+    data = {name: (dims + ((d,) if isinstance(d, str) else d)[1:], v.reshape(st.shape + v.shape[1:]), attrs)
+            for name, (d, v, attrs) in data.items()}
+    coords = {}
+    for a in st.axes:
+        coord = a.coordinate()
+        if any(isinstance(c, str) for c in coord):
+            coord = np.array(coord, dtype=object)  # variable-length strings (laminate notation)
+        coords[a.dimension] = (a.dimension, coord, {"long_name": a.long_name, **({"units": a.units} if a.units else {})})
     n_rays = len(rays[0][0].status)
     seed = st.scenes[0].seed
     ds = xr.Dataset(
         data,
         coords={
-            dim: (dim, coord, {"long_name": st.long_name, **({"units": st.units} if st.units else {})}),
+            **coords,
             "realisation": ("realisation", np.arange(R), {
                 "long_name": "wood realisation: the wood and beam of seed `seed` + realisation"}),
             "seed_of_realisation": ("realisation", seed + np.arange(R), {"long_name": "seed of the realisation"}),
@@ -131,9 +140,7 @@ def study_dataset(plan: Plan):
     ds["haze"].attrs["threshold_deg"] = HAZE_ANGLE_DEG
     target = st.scenes[0].target
     ds.attrs["rays"] = n_rays
-    # What was traced, which a reduced scale makes differ from the study's numbers.
-    ds["thickness_traced"] = (dim, np.array([s.thickness_um / 1000.0 for s in st.scenes]), {
-        "long_name": "TW sample thickness traced along T", "units": "mm"})
+    # What was traced (``thickness_traced`` above), which a reduced scale makes differ from the study's numbers.
     ds.attrs["beam_traced_um"] = st.scenes[0].beam_um
     if target is not None:
         ds.attrs["target_ci"] = json.dumps(target.to_dict())

@@ -247,11 +247,11 @@ def describe_plan(plan: Plan) -> list[str]:
             micro = (f"micro {m.key[:8]} {n_col - len(m.todo)}/{n_col} beam chunks cached"
                      if any(not s.cached for s in shards) else f"micro {m.key[:8]} not needed")
         rays = sum(s.cached for s in shards)
-        lines.append(f"{st.name} {st.dimension}={st.coordinate()[summ.scene_index]} realisation "
+        lines.append(f"{st.name} {st.label(summ.scene_index)} realisation "
                      f"{summ.realisation}: {micro}; rays {rays}/{len(shards)} shards cached; summary "
                      f"{'cached' if summ.cached else 'to compute'}")
     for pool in plan.pools:
-        lines.append(f"{st.name} {st.dimension}={st.coordinate()[pool.scene_index]}: "
+        lines.append(f"{st.name} {st.label(pool.scene_index)}: "
                      f"{st.realisations} realisations pooled {'cached' if pool.cached else 'to compute'}")
     return lines
 
@@ -271,10 +271,10 @@ def widen(plan: Plan) -> Study | None:
 
 
 def summary_rows(plan: Plan) -> list[dict]:
-    """The pooled numbers of each value (its realisations pooled), with the value, in the
-    study's order."""
+    """The pooled numbers of each value (its realisations pooled), with the value and its
+    "dimension=value" label, in the study's order."""
     coord = plan.study.coordinate()
-    return [{"value": coord[pool.scene_index], "thickness_traced_mm": plan.study.scenes[pool.scene_index].thickness_um
+    return [{"value": coord[pool.scene_index], "label": plan.study.label(pool.scene_index), "thickness_traced_mm": plan.study.scenes[pool.scene_index].thickness_um
              / 1000.0, **read_entry(pool)} for pool in plan.pools]
 
 

@@ -16,6 +16,11 @@ A study file declares a base scene and one parameter to vary::
     trace: {method: exact, exit: internal, fresnel: false}
     vary: {parameter: delta_ri, values: [-0.03, -0.02, -0.01, 0.01, 0.02, 0.03]}
 
+``vary`` may instead map several parameters to their values, a product grid whose
+Dataset has one dimension per parameter (in the file's order)::
+
+    vary: {thickness_mm: [0.25, 0.5, 1, 2], delta_ri: [-0.01, -0.002, 0.002, 0.01]}
+
 Instead of ``preset`` and ``wood``, ``reference: {name: tubes-square, pitch_um: 14.5,
 wall_um: 2}`` traces a reference lattice of exact optics
 (:mod:`pipeline.optics.references`); ``vary`` may then vary its ``pitch_um``, ``wall_um``,
@@ -34,6 +39,7 @@ file, the line and the field.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import re
 from dataclasses import dataclass
@@ -109,6 +115,24 @@ class Scene:
 
 
 @dataclass(frozen=True)
+class Axis:
+    """One varied parameter of a study: its dimension in the Dataset and its values."""
+
+    parameter: str
+    dimension: str
+    units: str
+    long_name: str
+    values: tuple  # as the scenes hold them
+    keys: tuple = ()  # where its values are in the study file
+
+    def coordinate(self) -> list:
+        """The values as a dimension coordinate (laminates as their ply notation)."""
+        if self.parameter == "laminate":
+            return ["none" if v is None else "/".join(f"{a:g}" for a in v) for v in self.values]
+        return list(self.values)
+
+
+@dataclass(frozen=True)
 class Study:
     name: str
     path: Path
@@ -119,8 +143,9 @@ class Study:
     dimension: str
     units: str
     long_name: str
-    scenes: tuple[Scene, ...]  # one per value, each on realisation 0
+    scenes: tuple[Scene, ...]  # one per value (per cell of the grid, C order), each on realisation 0
     realisations: int = 1
+    axes: tuple[Axis, ...] = ()  # the varied parameters (one for a 1-D study)
 
     def realisation(self, index: int, r: int) -> Scene:
         """Value ``index`` on wood realisation ``r``: the wood and beam of seed ``seed + r``."""
@@ -131,15 +156,29 @@ class Study:
         """Every traced scene: each value on each realisation."""
         return [self.realisation(i, r) for i in range(len(self.scenes)) for r in range(self.realisations)]
 
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Values per varied parameter."""
+        return tuple(len(a.values) for a in self.axes)
+
     def coordinate(self) -> list:
-        """The varied values as a dimension coordinate (laminates as their ply notation)."""
-        out = []
-        for s in self.scenes:
-            v = s.value
-            if self.parameter == "laminate":
-                v = "none" if v is None else "/".join(f"{a:g}" for a in v)
-            out.append(v)
-        return out
+        """Each value's coordinate (1-D: the varied values, laminates as their ply notation; a grid:
+        each cell's values joined, e.g. "0.5, 0.01")."""
+        coords = [a.coordinate() for a in self.axes]
+        if len(coords) == 1:
+            return coords[0]
+        return [", ".join(str(c[k]) for c, k in zip(coords, idx)) for idx in _cells(self.shape)]
+
+    def label(self, index: int) -> str:
+        """Value ``index`` as "dimension=value" (a grid: one per dimension)."""
+        coords = [a.coordinate() for a in self.axes]
+        idx = _cells(self.shape)[index]
+        return ", ".join(f"{a.dimension}={c[k]}" for a, c, k in zip(self.axes, coords, idx))
+
+
+def _cells(shape: tuple[int, ...]) -> list[tuple[int, ...]]:
+    """Every index of a grid of ``shape``, in C order (the order of a study's scenes)."""
+    return list(itertools.product(*(range(n) for n in shape)))
 
 
 def load_study(path, *, scale: str = "paper", realisations: int | None = None, method: str | None = None,
@@ -256,58 +295,33 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         key = ("trace", field.group(1)) if field and field.group(1) in trace else ("trace",)
         raise ParameterError(where(*key) + "`trace." + str(exc).lstrip("`")) from None
 
-    vary = data["vary"]
-    if not isinstance(vary, dict) or set(vary) != {"parameter", "values"}:
-        fail(("vary",), f"`vary` must be a mapping with `parameter` and `values`, got {vary!r}")
-    parameter = vary["parameter"]
-    values = vary["values"]
-    if ref_base is not None and parameter not in _SCENE_VARIABLES and parameter not in REFERENCE_FIELDS:
-        fail(("vary", "parameter"), f"`vary.parameter` of a reference scene must be one of "
-                                    f"{', '.join(sorted(_SCENE_VARIABLES) + list(REFERENCE_FIELDS))}, "
-                                    f"got {parameter!r}")
-    if ref_base is None and parameter not in _SCENE_VARIABLES and parameter not in WOOD_FIELDS:
-        fail(("vary", "parameter"), f"`vary.parameter` must be one of "
-                                    f"{', '.join(sorted(_SCENE_VARIABLES))} or a microstructure "
-                                    f"parameter, got {parameter!r}")
-    if not isinstance(values, list) or not values:
-        fail(("vary", "values"), f"`vary.values` must be a non-empty list, got {values!r}")
-
+    axes = [_axis(parameter, values, keys, ref_base, fail) for parameter, values, keys in _vary(data["vary"], fail)]
     f = SCALES[scale]
     n_rays = max(1, int(round(rays * f["rays"])))
     if rays_override is not None:
         n_rays = rays_override
     target = _target(data.get("target_ci"), n_rays, f["rays"], fail) if "target_ci" in data else None
     scenes = []
-    seen = set()
-    for v in values:
+    for combo in itertools.product(*(a.values for a in axes)):
         scene_vars = dict(base)
         w = dict(wood or {})
-        if parameter in _SCENE_VARIABLES or ref_base is not None:
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                fail(("vary", "values"), f"`vary.values` of {parameter} must be numbers, got {v!r}")
-            v = float(v)
-            if parameter in _SCENE_VARIABLES:
-                scene_vars[parameter] = v
-        else:
-            if parameter == "laminate" and v in ("none", "None"):
-                v = None
-            try:
-                w[parameter] = coerce_field(parameter, v, "")
-            except ParameterError as exc:
-                raise ParameterError(where("vary", "values") + f"`vary.values`: {exc}") from None
-            v = w[parameter]
-        marker = repr(v)
-        if marker in seen:
-            fail(("vary", "values"), f"`vary.values` must not repeat a value, got {v!r} twice")
-        seen.add(marker)
+        ref_fields = dict(ref_base or {})
+        for ax, v in zip(axes, combo):
+            if ax.parameter in _SCENE_VARIABLES:
+                scene_vars[ax.parameter] = v
+            elif ref_base is not None:
+                ref_fields[ax.parameter] = v
+            else:
+                w[ax.parameter] = v
+        v = combo[0] if len(axes) == 1 else combo
+        vary_keys = axes[0].keys if len(axes) == 1 else ("vary",)
         thickness_um = scene_vars["thickness_mm"] * 1000.0 * f["thickness"]
         params = ref = None
         if ref_base is not None:
-            fields = {**ref_base, **({parameter: v} if parameter in REFERENCE_FIELDS else {})}
             try:
-                ref = reference(**fields)
+                ref = reference(**ref_fields)
             except ParameterError as exc:
-                keys = ("vary", "values") if parameter in REFERENCE_FIELDS else ("reference",)
+                keys = vary_keys if any(a.parameter in REFERENCE_FIELDS for a in axes) else ("reference",)
                 raise ParameterError(where(*keys) + f"value {v!r}: `reference.{str(exc).lstrip('`')}") from None
             wall = ref.wall_um
         else:
@@ -343,6 +357,59 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
                             delta_ri=scene_vars["delta_ri"], rays=n_rays,
                             beam_um=beam_um * f["beam"], settings=settings, target=target, reference=ref))
 
+    first = axes[0]
+    dimension = first.dimension if len(axes) == 1 else " × ".join(a.dimension for a in axes)
+    title = data.get("title", path.stem)
+    if not isinstance(title, str):
+        fail(("title",), f"`title` must be a string, got {title!r}")
+    return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
+                 parameter=" × ".join(a.parameter for a in axes), dimension=dimension, units=first.units,
+                 long_name=first.long_name, scenes=tuple(scenes), realisations=n_real, axes=tuple(axes))
+
+
+def _vary(vary, fail) -> list[tuple[str, Any, tuple]]:
+    """``vary`` as (parameter, values, YAML keys of its values): {parameter, values} for one
+    parameter, or a mapping of parameters to values for a product grid."""
+    if isinstance(vary, dict) and set(vary) == {"parameter", "values"}:
+        return [(vary["parameter"], vary["values"], ("vary", "values"))]
+    if not isinstance(vary, dict) or not vary or "parameter" in vary or "values" in vary:
+        fail(("vary",), "`vary` must be a mapping with `parameter` and `values`, or of parameters to their values "
+                        f"(a grid, e.g. {{thickness_mm: [0.5, 1], delta_ri: [0.01, 0.02]}}), got {vary!r}")
+    return [(k, v, ("vary", k)) for k, v in vary.items()]
+
+
+def _axis(parameter, values, keys, ref_base, fail) -> Axis:
+    """One varied parameter, its values checked and coerced as the scenes hold them."""
+    legacy = keys[-1] == "values"
+    name = "vary.values" if legacy else f"vary.{parameter}"
+    known = (sorted(_SCENE_VARIABLES) + list(REFERENCE_FIELDS) if ref_base is not None
+             else sorted(_SCENE_VARIABLES) + ["a microstructure parameter"])
+    if parameter not in _SCENE_VARIABLES and parameter not in (REFERENCE_FIELDS if ref_base is not None
+                                                               else WOOD_FIELDS):
+        what = "of a reference scene " if ref_base is not None else ""
+        if legacy:
+            fail(("vary", "parameter"), f"`vary.parameter` {what}must be one of {', '.join(known)}, "
+                                        f"got {parameter!r}")
+        fail(("vary", parameter), f"unknown parameter `{name}`: a study {what}varies one of {', '.join(known)}")
+    if not isinstance(values, list) or not values:
+        fail(keys, f"`{name}` must be a non-empty list, got {values!r}")
+    out, seen = [], set()
+    for v in values:
+        if parameter in _SCENE_VARIABLES or ref_base is not None:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                fail(keys, f"`{name}` of {parameter} must be numbers, got {v!r}")
+            v = float(v)
+        else:
+            if parameter == "laminate" and v in ("none", "None"):
+                v = None
+            try:
+                v = coerce_field(parameter, v, "")
+            except ParameterError as exc:
+                fail(keys, f"`{name}`: {exc}")
+        if repr(v) in seen:
+            fail(keys, f"`{name}` must not repeat a value, got {v!r} twice")
+        seen.add(repr(v))
+        out.append(v)
     if parameter in _SCENE_VARIABLES:
         dimension, units, long_name = _SCENE_VARIABLES[parameter]
     else:
@@ -351,13 +418,7 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         long_name = parameter.replace("_", " ")
         if parameter == "laminate":
             long_name = "laminate ply angles in the L-R plane (none: solid wood)"
-            units = "degree"
-    title = data.get("title", path.stem)
-    if not isinstance(title, str):
-        fail(("title",), f"`title` must be a string, got {title!r}")
-    return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
-                 parameter=parameter, dimension=dimension, units=units, long_name=long_name,
-                 scenes=tuple(scenes), realisations=n_real)
+    return Axis(parameter, dimension, units, long_name, tuple(out), keys)
 
 
 def _reference_fields(data: dict, fail) -> dict:
