@@ -11,13 +11,14 @@ SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6
 EXPERIMENT := birch-0.7mm birch-0.7mm-air balsa-1mm balsa-1mm-air balsa-1mm-radius
 FIBRE_TIPS := with-ray-cells without-ray-cells
+DESIGN := birch birch-air balsa balsa-air
 # YES=1 runs what is estimated above TWRAY_CONFIRM_CPU_HOURS.
 YES ?=
 STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $(YES),--yes)
 # Each scale has its own results folder: results/paper/ (committed), results/quick/ and results/small/.
 RESULTS = results/$(SCALE)
 
-.PHONY: install wheel-check demo test figures report experiment fibre-tips table1-paper-method convergence bench bench-generate bench-trace bench-exact bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera $(STUDIES)
+.PHONY: install wheel-check demo test figures report experiment fibre-tips table1-paper-method convergence bench bench-generate bench-trace bench-exact bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera design $(STUDIES)
 
 install: $(STAMP)
 
@@ -43,6 +44,12 @@ experiment: install
 ## Overlapping tapered fibre tips (fibre_tip_um 0-300 µm) with and without ray cells -> results/<scale>/fibre-tips/.
 fibre-tips: install
 	$(BIN)/twray study $(addprefix studies/fibre-tips/,$(addsuffix .yaml,$(FIBRE_TIPS))) $(STUDY_ARGS) --results $(RESULTS)/fibre-tips --report $(RESULTS)/fibre-tips/fibre-tips.md
+
+## Design maps: haze and FWHM_R of birch and balsa over thickness x ΔRI, inside and in air -> results/<scale>/design/
+## (~80 CPU-min at paper scale), then their figures; `twray design` reads them.
+design: install
+	$(BIN)/twray study $(addprefix studies/design/,$(addsuffix .yaml,$(DESIGN))) $(STUDY_ARGS) --results $(RESULTS)/design --report $(RESULTS)/design/design.md
+	$(BIN)/twray figures --only design --results $(RESULTS) --out $(if $(filter paper,$(SCALE)),results/figures,$(RESULTS)/figures)
 
 ## Table 1 with the paper's method (500 rays per wood) beside `accurate` -> results/<scale>/paper-method/ (~3.5 CPU-h at paper scale).
 table1-paper-method: install

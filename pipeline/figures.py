@@ -384,10 +384,11 @@ def make_figures(results: Path, out: Path, *, which: set[str] | None = None, log
     """Every figure from the datasets under ``results`` (a scale's folder) into ``out``.
 
     ``which`` limits the work to some of ``{"microstructure", "trajectories",
-    "studies", "histograms", "camera"}``.
+    "studies", "histograms", "camera", "design"}`` (the design maps are drawn when all of
+    results/design/ is there).
     """
     results, out = Path(results), Path(out)
-    which = which or {"microstructure", "trajectories", "studies", "histograms", "camera"}
+    which = which or {"microstructure", "trajectories", "studies", "histograms", "camera", "design"}
     need = TABLE1 if which & {"microstructure", "studies"} else (
         ("study-1",) if which & {"histograms", "trajectories"} else ())
     datasets = {name: open_dataset(results / f"{name}.zarr") for name in need}
@@ -418,6 +419,18 @@ def make_figures(results: Path, out: Path, *, which: set[str] | None = None, log
     if "camera" in which:
         made.append(plot_camera(open_dataset(results / "camera" / "figure5.zarr"), out / "camera.png"))
         log(f"wrote {made[-1]}")
+    if "design" in which:
+        from .design import MAPS, plot_maps, plot_windows
+
+        paths = {name: results / "design" / f"{name}.zarr" for name in MAPS}
+        if all(p.exists() for p in paths.values()):
+            maps = {name: open_dataset(p) for name, p in paths.items()}
+            made.append(plot_maps(maps, out / "design-maps.png"))
+            log(f"wrote {made[-1]}")
+            made.append(plot_windows(maps, out / "design-windows.png"))
+            log(f"wrote {made[-1]}")
+        else:
+            log(f"design maps not drawn: {results / 'design'} lacks some of {', '.join(MAPS)} (run `make design`)")
     return made
 
 

@@ -16,7 +16,7 @@ from ..cache import log_to_stderr
 from ..params import ParameterError
 from .args import EXIT_INTERRUPTED, EXIT_USAGE, Parser, YES_HELP, subparser
 from .graphs import add_camera, add_study
-from .outputs import add_cache, add_figures
+from .outputs import add_cache, add_design, add_figures
 from .trace import add_trace
 from .volumes import add_generate, cmd_export_tiff, cmd_info, cmd_slices
 
@@ -31,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_camera(sub)
     add_cache(sub)
     add_figures(sub)
+    add_design(sub)
     p = subparser(sub, "slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
     p.add_argument("volume", help="a twray volume (.zarr)")
     p.add_argument("--out", required=True, help="output directory")

@@ -67,6 +67,13 @@ EXAMPLES = {
                "interval, the trends as paired differences, the camera, the speed/accuracy trade and "
                "the commands that reproduce each item. Every number is read from a dataset.",
                ["twray report", "twray report --out /tmp/REPORT.md"]),
+    "design": ("How well must the polymer match the wall? From a design map (a study over thickness × ΔRI, "
+               "`make design`), the range of ΔRI that keeps haze at or below a limit at a given thickness, "
+               "with its 95 % interval (wood-to-wood variation included), interpolated between the map's "
+               "values.",
+               ["twray design --preset birch --thickness-mm 1 --haze-max 0.2",
+                "twray design --preset balsa --exit air --thickness-mm 0.5 --haze-max 0.1",
+                "twray design --map results/quick/design/birch.zarr --thickness-mm 2 --haze-max 0.5"]),
     "cache": ("List, verify or clean the cache of studies and the camera.",
               ["twray cache ls", "twray cache verify --remove",
                "twray cache gc studies/table1/*.yaml --scale paper --dry-run"]),

@@ -86,7 +86,7 @@ def cmd_cache(args) -> int:
     return 0
 
 
-FIGURE_KINDS = ("microstructure", "trajectories", "studies", "histograms", "camera")
+FIGURE_KINDS = ("microstructure", "trajectories", "studies", "histograms", "camera", "design")
 
 
 def add_figures(sub):
@@ -101,6 +101,36 @@ def add_figures(sub):
     p.add_argument("--scale", default="paper", help="whose datasets: results/<scale>/ (default paper)")
     p.add_argument("--out", default="results/REPORT.md", help="the report (default results/REPORT.md)")
     p.set_defaults(func=cmd_report)
+
+
+def add_design(sub):
+    p = subparser(sub, "design", help="the ΔRI window that keeps haze below a limit, from a design map")
+    p.add_argument("--preset", default="birch", choices=("birch", "balsa"), help="species (default birch)")
+    p.add_argument("--exit", default="internal", choices=("internal", "air"),
+                   help="haze of the angles inside the sample (the paper's) or in air (a hazemeter's)")
+    p.add_argument("--thickness-mm", required=True, help="sample thickness [mm], within the map's")
+    p.add_argument("--haze-max", required=True, help="the haze limit, a fraction (0.2: 20 %%)")
+    p.add_argument("--results", default="results/paper", help="where design/<map>.zarr is (default results/paper)")
+    p.add_argument("--map", default=None, help="a design map Dataset (default: the preset's and exit's under --results)")
+    p.set_defaults(func=cmd_design)
+
+
+def cmd_design(args) -> int:
+    import json
+
+    from ..design import open_map, window_line
+    from .args import number
+
+    thickness = number(args.thickness_mm, "thickness_mm")
+    haze_max = number(args.haze_max, "haze_max")
+    ds = open_map(Path(args.results), args.preset, args.exit, args.map)
+    line = window_line(ds, thickness, haze_max)
+    method = json.loads(ds.attrs["trace_settings"])["method"]
+    print(f"{ds.attrs['title']}: {line}")
+    print(f"  interpolated on {args.map or Path(args.results) / 'design'} ({ds.sizes['thickness']} thicknesses × "
+          f"{ds.sizes['delta_ri']} ΔRI, {ds.attrs['realisations']} woods × {ds.attrs['rays']} rays per cell, "
+          f"method {method}, scale {ds.attrs['scale']})")
+    return 0
 
 
 def _need(path: Path, field: str, value: str, command: str) -> None:
@@ -124,6 +154,11 @@ def cmd_figures(args) -> int:
             _need(results / f"{name}.zarr", "results", args.results, "make table1")
     if "camera" in kinds:
         _need(results / "camera" / "figure5.zarr", "results", args.results, "make camera")
+    if which is not None and "design" in which:
+        from ..design import MAPS
+
+        for name in MAPS:
+            _need(results / "design" / f"{name}.zarr", "results", args.results, "make design")
     out = out_path(args.out, "out")
     t0 = time.perf_counter()
     made = make_figures(results, out, which=which)

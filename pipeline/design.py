@@ -1,0 +1,193 @@
+"""Design maps: haze and FWHM_R over thickness × ΔRI, and the ΔRI window that keeps haze below a
+limit (docs/methods.md#design-maps).
+
+A design map is a grid study (``studies/design/``) whose Dataset has the
+dimensions ``thickness`` [mm] and ``delta_ri``.  At ΔRI = 0 the wall and the
+polymer are one medium: no ray is deviated, haze and FWHM_R are 0 exactly, and
+the maps use that as their centre line.  Between grid values haze is
+interpolated linearly, first along the thickness, then along |ΔRI| on each
+side of 0; the window's interval comes from the same interpolation of the
+haze interval's bounds (its upper bound crosses the limit first: the smallest
+|ΔRI| the data allow; its lower bound last: the largest).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .params import ParameterError
+
+MAPS = ("birch", "birch-air", "balsa", "balsa-air")  # studies/design/<name>.yaml → results/<scale>/design/<name>.zarr
+HAZE_LEVELS = (0.1, 0.2, 0.5)  # the contours drawn on the maps
+
+
+def map_name(preset: str, exit: str) -> str:
+    """The design map of ``preset`` with angles ``exit`` ("internal" or "air")."""
+    return preset if exit == "internal" else f"{preset}-{exit}"
+
+
+@dataclass(frozen=True)
+class Edge:
+    """The largest |ΔRI| on one side of 0 that keeps haze at or below the limit, with its 95 %
+    interval; ``beyond``: the haze stays below the limit over the whole map on that side (the
+    value is then the map's last |ΔRI|, a lower bound)."""
+
+    value: float
+    lo: float
+    hi: float
+    beyond: bool = False
+
+
+def _crossing(x: np.ndarray, y: np.ndarray, level: float) -> tuple[float, bool]:
+    """The first x at which the piecewise-linear y (x ascending, from (0, 0)) reaches ``level``;
+    (the last x, True) if it never does."""
+    for k in range(1, len(x)):
+        if y[k] > level:
+            if y[k - 1] >= level:
+                return float(x[k - 1]), False
+            return float(x[k - 1] + (x[k] - x[k - 1]) * (level - y[k - 1]) / (y[k] - y[k - 1])), False
+    return float(x[-1]), True
+
+
+def haze_at(ds, thickness_mm: float):
+    """Haze and its interval bounds at ``thickness_mm``, interpolated along the map's thickness."""
+    t = ds["thickness"].values.astype(float)
+    if not t.min() <= thickness_mm <= t.max():
+        raise ParameterError(f"`thickness_mm` must lie within the design map's {t.min():g}-{t.max():g} mm, got "
+                             f"thickness_mm={thickness_mm:g} (add thicknesses to the map's `vary.thickness_mm` "
+                             "and run `make design`)")
+    sel = ds[["haze", "haze_ci_lower", "haze_ci_upper"]]
+    return sel.interp(thickness=thickness_mm) if thickness_mm not in t else sel.sel(thickness=thickness_mm)
+
+
+def window(ds, thickness_mm: float, haze_max: float) -> dict[str, Edge]:
+    """The ΔRI window keeping haze <= ``haze_max`` at ``thickness_mm``: per side ("negative",
+    "positive") the largest |ΔRI| with its interval."""
+    if not 0.0 < haze_max < 1.0:
+        raise ParameterError(f"`haze_max` must be a fraction in (0, 1), got haze_max={haze_max:g}")
+    at = haze_at(ds, thickness_mm)
+    dri = at["delta_ri"].values.astype(float)
+    out = {}
+    for side, sign in (("negative", -1.0), ("positive", 1.0)):
+        pick = np.flatnonzero(sign * dri > 0)
+        pick = pick[np.argsort(np.abs(dri[pick]))]
+        if pick.size == 0:
+            raise ParameterError(f"the design map has no {side} ΔRI: add some to its `vary.delta_ri`")
+        x = np.concatenate([[0.0], np.abs(dri[pick])])
+        edge = {}
+        for name in ("haze", "haze_ci_upper", "haze_ci_lower"):
+            y = np.concatenate([[0.0], at[name].values[pick]])
+            edge[name] = _crossing(x, y, haze_max)
+        out[side] = Edge(edge["haze"][0], edge["haze_ci_upper"][0], edge["haze_ci_lower"][0], edge["haze"][1])
+    return out
+
+
+def open_map(results: Path, preset: str, exit: str, path: str | None = None):
+    """The design map Dataset: ``path``, or results/design/<preset>[-air].zarr; one line if absent."""
+    import xarray as xr
+
+    where = Path(path) if path else Path(results) / "design" / f"{map_name(preset, exit)}.zarr"
+    if not where.exists():
+        field, value = ("map", path) if path else ("results", str(results))
+        raise ParameterError(f"`{field}` must hold the design map {where} (run `make design`, or "
+                             f"`twray study studies/design/{map_name(preset, exit)}.yaml --results "
+                             f"{Path(results) / 'design'}`), got {field}={value!r}")
+    ds = xr.open_zarr(where, consolidated=False)
+    if set(ds["haze"].dims) != {"thickness", "delta_ri"}:
+        raise ParameterError(f"`map` must be a study over thickness_mm × delta_ri, got {where} with dimensions "
+                             f"{', '.join(ds['haze'].dims)}")
+    return ds
+
+
+def window_line(ds, thickness_mm: float, haze_max: float) -> str:
+    """The window as one sentence, with its intervals and what the map was traced with."""
+    w = window(ds, thickness_mm, haze_max)
+    n, p = w["negative"], w["positive"]
+
+    def edge(e: Edge, sign: str) -> str:
+        if e.beyond:
+            return f"beyond {sign}{e.value:.3g} (the map's edge: haze stays below the limit up to it)"
+        lo, hi = (e.lo, e.hi) if sign == "+" else (e.hi, e.lo)
+        return f"{sign}{e.value:.2g} [{sign}{lo:.2g}, {sign}{hi:.2g}]"
+
+    return (f"haze <= {100 * haze_max:g} % at {thickness_mm:g} mm for ΔRI from {edge(n, '-')} to "
+            f"{edge(p, '+')} (95 % intervals, wood-to-wood variation included)")
+
+
+def _with_zero(ds, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(thickness, ΔRI with 0 inserted, values with 0 at ΔRI = 0): the maps' exact centre line."""
+    dri = ds["delta_ri"].values.astype(float)
+    order = np.argsort(dri)
+    dri = dri[order]
+    v = ds[name].transpose("thickness", "delta_ri").values[:, order]
+    k = int(np.searchsorted(dri, 0.0))
+    return (ds["thickness"].values.astype(float), np.insert(dri, k, 0.0), np.insert(v, k, 0.0, axis=1))
+
+
+def plot_maps(maps: dict, path: Path) -> Path:
+    """Haze and FWHM_R over thickness × ΔRI for each map (columns), the haze = 10, 20, 50 %
+    contours on both."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(maps), figsize=(4.2 * len(maps), 7.0), squeeze=False)
+    for j, (name, ds) in enumerate(maps.items()):
+        t, dri, haze = _with_zero(ds, "haze")
+        _, _, fw = _with_zero(ds, "FWHM_R")
+        for i, (vals, label, scale) in enumerate(((haze, "haze [%]", 100.0), (fw, "FWHM_R [°]", 1.0))):
+            ax = axes[i, j]
+            cf = ax.contourf(dri, t, vals * scale, levels=12, cmap="magma")
+            fig.colorbar(cf, ax=ax, label=label)
+            cs = ax.contour(dri, t, haze * 100.0, levels=[100 * h for h in HAZE_LEVELS], colors="w",
+                            linewidths=1.0)
+            ax.clabel(cs, fmt="%g %%", fontsize=7)
+            ax.set_xscale("symlog", linthresh=1e-3)
+            ax.set_yscale("log")
+            ax.set_xlabel("ΔRI (wall − polymer)")
+            ax.set_ylabel("thickness [mm]")
+            if i == 0:
+                ax.set_title(f"{name.removesuffix('-air')}, angles {'in air' if name.endswith('-air') else 'internal'}",
+                             fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
+
+
+def plot_windows(maps: dict, path: Path, levels=HAZE_LEVELS) -> Path:
+    """The largest |ΔRI| keeping haze below each level, against thickness, per map and side, with
+    its 95 % interval as a band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(levels), figsize=(4.6 * len(levels), 4.0), squeeze=False)
+    for j, h in enumerate(levels):
+        ax = axes[0, j]
+        for (name, ds), colour in zip(maps.items(), ("tab:blue", "tab:cyan", "tab:red", "tab:orange")):
+            t = ds["thickness"].values.astype(float)
+            for side, style in (("positive", "-"), ("negative", "--")):
+                edges = [window(ds, d, h)[side] for d in t]
+                # Where haze stays below the limit to the map's edge the line stops (no bound to draw).
+                ax.plot(t, [np.nan if e.beyond else e.value for e in edges], style, color=colour,
+                        label=f"{name}, ΔRI {'>' if side == 'positive' else '<'} 0")
+                ax.fill_between(t, [e.lo for e in edges], [e.hi for e in edges], color=colour, alpha=0.12)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("thickness [mm]")
+        ax.set_ylabel("largest |ΔRI| with haze below the limit")
+        ax.set_title(f"haze <= {100 * h:g} %")
+        if j == 0:
+            ax.legend(fontsize=6)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path

@@ -1,0 +1,61 @@
+"""Design maps: the ΔRI window that keeps haze below a limit, and `twray design`."""
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from pipeline.cli import main
+from pipeline.design import window
+
+T = np.array([0.5, 1.0, 2.0])
+D = np.array([-0.03, -0.01, -0.002, 0.002, 0.01, 0.03])
+
+
+def linear_map(slope_neg=20.0, slope_pos=10.0):
+    """haze = slope · |ΔRI| · thickness [mm] (a different slope each side), interval ±20 %."""
+    slope = np.where(D < 0, slope_neg, slope_pos)
+    haze = np.minimum(T[:, None] * slope[None, :] * np.abs(D)[None, :], 1.0)
+    ds = xr.Dataset({"haze": (("thickness", "delta_ri"), haze),
+                     "haze_ci_lower": (("thickness", "delta_ri"), 0.8 * haze),
+                     "haze_ci_upper": (("thickness", "delta_ri"), np.minimum(1.2 * haze, 1.0)),
+                     "FWHM_R": (("thickness", "delta_ri"), 100 * haze)},
+                    coords={"thickness": T, "delta_ri": D},
+                    attrs={"title": "Design map: test", "trace_settings": json.dumps({"method": "exact"}),
+                           "realisations": 3, "rays": 200, "scale": "paper"})
+    return ds
+
+
+def test_the_window_is_where_interpolated_haze_crosses_the_limit_and_its_interval_the_bounds_crossings():
+    w = window(linear_map(), 1.0, 0.1)
+    assert w["positive"].value == pytest.approx(0.1 / 10.0) and w["negative"].value == pytest.approx(0.1 / 20.0)
+    assert w["positive"].lo == pytest.approx(0.01 / 1.2) and w["positive"].hi == pytest.approx(0.01 / 0.8)
+    # Between thicknesses haze is interpolated linearly: at 1.5 mm, halfway between 1 and 2 mm.
+    assert window(linear_map(), 1.5, 0.1)["positive"].value == pytest.approx(0.1 / 15.0)
+    # Below the first ΔRI of the map the line from ΔRI = 0 (haze 0 exactly) is used.
+    assert window(linear_map(), 0.5, 0.005)["positive"].value == pytest.approx(0.005 / 5.0)
+    far = window(linear_map(), 0.5, 0.9)["positive"]
+    assert far.beyond and far.value == 0.03  # 0.5 · 10 · 0.03 = 0.15 < 0.9: the map's edge
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--thickness-mm", "3", "--haze-max", "0.2"], "`thickness_mm` must lie within the design map's 0.5-2 mm"),
+    (["--thickness-mm", "1", "--haze-max", "20"], "`haze_max` must be a fraction in (0, 1), got haze_max=20"),
+    (["--thickness-mm", "thick", "--haze-max", "0.2"], "`thickness_mm` must be a number"),
+])
+def test_bad_design_questions_are_one_line(tmp_path, argv, needle, capsys):
+    linear_map().to_zarr(tmp_path / "m.zarr", consolidated=False)
+    assert main(["design", "--map", str(tmp_path / "m.zarr"), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and needle in err
+
+
+def test_twray_design_prints_the_window_with_its_intervals(tmp_path, capsys):
+    linear_map().to_zarr(tmp_path / "m.zarr", consolidated=False)
+    assert main(["design", "--map", str(tmp_path / "m.zarr"), "--thickness-mm", "1", "--haze-max", "0.1"]) == 0
+    out = capsys.readouterr().out
+    assert "haze <= 10 % at 1 mm for ΔRI from -0.005 [-0.0062, -0.0042] to +0.01 [+0.0083, +0.012]" in out
+    assert "3 woods × 200 rays per cell, method exact" in out
+    assert main(["design", "--results", str(tmp_path), "--thickness-mm", "1", "--haze-max", "0.1"]) == 2
+    assert "run `make design`" in capsys.readouterr().err
