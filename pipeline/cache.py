@@ -26,6 +26,8 @@ left without touching what a live run is writing.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import json
 import logging
@@ -135,13 +137,44 @@ def sweep_leftovers(*folders, deep: bool = False) -> list[Path]:
     return removed
 
 
+FAULT_ENV = "TWRAY_FAULT_ENOSPC"  # "<stage>:<bytes>": writes of that stage fail as on a full disk (fault tests)
+_fault_written: dict = {}
+
+
+def _size_of(path: Path) -> int:
+    if path.is_dir():
+        return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+    return path.stat().st_size if path.exists() else 0
+
+
+@contextlib.contextmanager
+def writing(path: Path, stage: str, staged: Path | None = None):
+    """Around the writing of ``path`` (a cache entry of ``stage``, or "dataset"): an OSError that
+    names no file (a full disk fails ``write``, not ``open``) is raised again naming ``path``;
+    with :data:`FAULT_ENV` set for this stage, the bytes of ``staged`` count towards a budget past
+    which the write fails with ENOSPC, as a full disk would (counted per process)."""
+    try:
+        yield
+        spec = os.environ.get(FAULT_ENV, "")
+        kind, _, budget = spec.partition(":")
+        if kind in (stage, "any") and staged is not None:
+            _fault_written[kind] = _fault_written.get(kind, 0) + _size_of(Path(staged))
+            if _fault_written[kind] > int(budget or 0):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    except OSError as exc:
+        if exc.filename is None and exc.errno is not None:
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+        raise
+
+
 def atomic_write(path: Path, write) -> None:
     """``write(tmp)`` then rename ``tmp`` onto ``path``: readers see the old file or the new one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_name(path, "tmp")
     try:
-        write(tmp)
+        with writing(path, path.parent.name, tmp):
+            write(tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():

@@ -59,7 +59,22 @@ def generate_client(workers: int | None, scheduler: str | None):
             cluster.close()
 
 
-def graph_client(command: str, *, workers: int | None = None, threads: int | None = None,
+def memory_limit(text: str | None):
+    """``--memory-limit`` as bytes (None: Dask's default, the machine's memory over the workers)."""
+    if text is None:
+        return None
+    from dask.utils import parse_bytes
+
+    try:
+        value = parse_bytes(text)
+    except (ValueError, TypeError):
+        value = None
+    if not value or value < 64 << 20:
+        raise ParameterError(f"`memory_limit` must be a size of at least 64MB such as 2GB, got memory_limit={text!r}")
+    return value
+
+
+def graph_client(command: str, *, workers: int | None = None, threads: int | None = None, memory=None,
                  scheduler: str | None = None, scheduler_file: str | None = None):
     """(client, local cluster or None) for a study's or the camera's graph."""
     import dask
@@ -82,7 +97,8 @@ def graph_client(command: str, *, workers: int | None = None, threads: int | Non
     threads = threads if threads is not None else max(1, cores // workers)
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC}
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True)
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True,
+                               **({"memory_limit": memory} if memory is not None else {}))
     return Client(cluster), cluster
 
 
@@ -90,9 +106,13 @@ def graph_client(command: str, *, workers: int | None = None, threads: int | Non
 def cluster(command: str, **where):
     """A Dask client for ``command`` ("study" or "camera"; ``where``: :func:`graph_client`'s
     options), printing its dashboard, closed with its local cluster."""
+    from . import runlog
+
+    runlog.route_dask_logs(runlog.log_file())  # the nannies and scheduler of a local cluster live here
     client, local = graph_client(command, **where)
     try:
-        print(f"twray {command}: dashboard {client.dashboard_link}", file=sys.stderr)
+        runlog.quiet_workers(client)
+        print(f"twray {command}: dashboard {client.dashboard_link}; logs in {runlog.log_file()}", file=sys.stderr)
         yield client
     finally:
         client.close()

@@ -15,7 +15,7 @@ import os
 import shutil
 from pathlib import Path
 
-from .cache import dataset_digest, temp_name, warn
+from .cache import dataset_digest, temp_name, warn, writing
 from .params import ParameterError
 
 PUBLISH_TRIES = 50
@@ -127,7 +127,8 @@ def publish_dataset(build, out: Path, provenance: dict) -> Path:
     ds.attrs.update(provenance)
     ds.attrs[DIGEST_ATTR] = dataset_digest(ds)
     try:
-        write_zarr(ds, staged)
+        with writing(out, "dataset", staged):
+            write_zarr(ds, staged)
         publish(staged, out, overwrite=True)
     finally:
         if staged.exists():

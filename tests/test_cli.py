@@ -179,9 +179,16 @@ def test_failure_during_generation_leaves_nothing(tmp_path, capsys, monkeypatch)
 
     monkeypatch.setattr(volume, "generate_block", boom)
     out = tmp_path / "v.zarr"
-    with pytest.raises(RuntimeError):
-        main(["generate", "--size-um", "5,5,5", "--out", str(out)])
+    monkeypatch.setenv("TMPDIR", str(tmp_path.parent / f"{tmp_path.name}-tmp"))  # where a cacheless log goes
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    assert main(["generate", "--size-um", "5,5,5", "--out", str(out)]) == 1
     assert list(tmp_path.iterdir()) == []
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "internal error, RuntimeError: disk full" in err
+    log = err.split("traceback in ")[-1].rstrip(")")
+    assert "raise RuntimeError(\"disk full\")" in open(log).read()  # the whole traceback is in the log
 
 
 def test_console_script_exit_code_is_2_for_bad_input(tmp_path):

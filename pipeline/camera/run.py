@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..runlog import task
 from ..cache import DamagedEntry, atomic_write, cache_key, check_npz, read_npz, sound, write_npz
 from .. import versions
 from ..microstructure.store import wood_record, wood_store
@@ -70,6 +71,7 @@ def plan_camera(study: CameraStudy, cache_dir) -> list[Entry]:
 
 
 # ---------------------------------------------------------------------- tasks (run on workers)
+@task
 def render_block(cfg: ImageConfig, lo: int, hi: int, cache_dir: str) -> RowsImage:
     """Sensor rows [lo, hi) of one image."""
     from ..optics.media import wood_medium
@@ -85,6 +87,7 @@ def render_block(cfg: ImageConfig, lo: int, hi: int, cache_dir: str) -> RowsImag
     return render_rows(cfg.camera, sh, cfg.target, np.arange(lo, hi), settings=cfg.settings, medium=medium)
 
 
+@task
 def assemble(cfg: ImageConfig, path: str, *blocks: RowsImage) -> dict:
     """Join the row blocks of an image and store it (atomically) as a cache entry."""
     image = np.concatenate([b.image for b in blocks])
@@ -104,15 +107,19 @@ def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROW
 
     tasks = []
     n_blocks = 0
+    labels = {}
     for e in entries:
         if e.cached:
             continue
+        labels[f"camera-image-{e.key[:12]}"] = f"camera image {e.config.name}"
         cfg = dask.delayed(e.config, name=f"camera-config-{e.key[:12]}", traverse=False)
         ny = e.config.camera.pixels[0]
         blocks = [dask.delayed(render_block, pure=False)(
             cfg, lo, min(lo + rows_per_task, ny), str(cache_dir),
             dask_key_name=f"camera-rows-{e.key[:12]}-{lo}") for lo in range(0, ny, rows_per_task)]
         n_blocks += len(blocks)
+        labels.update({f"camera-rows-{e.key[:12]}-{lo}": f"camera image {e.config.name}, rows {lo}-"
+                       f"{min(lo + rows_per_task, ny)}" for lo in range(0, ny, rows_per_task)})
         tasks.append(dask.delayed(assemble, pure=False)(
             cfg, str(e.path), *blocks, dask_key_name=f"camera-image-{e.key[:12]}"))
     report = {"images": len(tasks), "row_tasks": n_blocks, "rays": 0}
@@ -120,9 +127,14 @@ def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROW
         return report
     from ..progress import follow, graph_keys
 
+    from ..runlog import task_failure
+
     futures = client.compute(tasks)
-    follow(client, futures, graph_keys(tasks), "twray camera", progress)
-    results = client.gather(futures)
+    try:
+        follow(client, futures, graph_keys(tasks), "twray camera", progress)
+        results = client.gather(futures)
+    except Exception as exc:
+        raise task_failure(exc, labels) from exc
     report["rays"] = int(sum(r["rays"] for r in results))
     return report
 

@@ -13,8 +13,10 @@ import threading
 
 from .. import __version__
 from ..cache import log_to_stderr
+from .. import runlog
 from ..params import ParameterError
-from .args import EXIT_INTERRUPTED, EXIT_USAGE, Parser, YES_HELP, subparser
+from ..runlog import RunFailed
+from .args import EXIT_ENVIRONMENT, EXIT_INTERRUPTED, EXIT_USAGE, Parser, YES_HELP, subparser
 from .graphs import add_camera, add_study
 from .outputs import add_cache, add_design, add_figures
 from .trace import add_trace
@@ -56,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _terminated)
+    runlog.start()  # until a command names its cache
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)
@@ -66,10 +69,18 @@ def main(argv: list[str] | None = None) -> int:
         print("twray: interrupted; nothing half-written is left (studies and the camera resume from their "
               "cache)", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except RunFailed as exc:  # a Dask task failed: its line names the scene, the fix and the log
+        print(f"twray: error: {exc}", file=sys.stderr)
+        return EXIT_ENVIRONMENT
     except OSError as exc:  # the filesystem refused (disk full, permissions): one line, not a traceback
-        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-        print(f"twray: error: {exc.strerror or exc}{where}", file=sys.stderr)
-        return 1
+        log = runlog.record(exc)
+        print(f"twray: error: {runlog.os_error_line(exc)}; traceback in {log}", file=sys.stderr)
+        return EXIT_ENVIRONMENT
+    except Exception as exc:  # a defect of twray: one line, the traceback in the log
+        log = runlog.record(exc)
+        print(f"twray: error: internal error, {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''} "
+              f"(a defect of twray: please report it with the traceback in {log})", file=sys.stderr)
+        return EXIT_ENVIRONMENT
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

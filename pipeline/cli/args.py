@@ -14,6 +14,9 @@ from ..params import ParameterError
 EXIT_USAGE = 2
 
 
+EXIT_ENVIRONMENT = 1  # the disk, memory or a worker failed; or a defect (its traceback in the log)
+
+
 EXIT_INTERRUPTED = 130  # as a shell reports a process ended by Ctrl-C
 
 

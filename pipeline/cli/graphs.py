@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from .. import limits
+from ..cluster import memory_limit
 from ..progress import mode as progress_mode
 from ..params import ParameterError
 from .args import YES_HELP, integer, out_path, subparser
@@ -17,6 +18,9 @@ def add_cluster_options(p) -> None:
     p.add_argument("--workers", default=None, help="local worker processes (study: dask's split of the cores, "
                                                    "2 on 2 cores; camera: 1, using every core)")
     p.add_argument("--threads", default=None, help="threads per local worker (default: cores / workers)")
+    p.add_argument("--memory-limit", default=None,
+                   help="memory per local worker, e.g. 2GB (default: the machine's memory / workers); a worker "
+                        "past it is restarted and its task retried")
     p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
     p.add_argument("--scheduler-file", default=None, help="scheduler file of a running Dask cluster")
     p.add_argument("--cache", default="results/cache", help="cache directory (default results/cache)")
@@ -52,7 +56,10 @@ def _absolute_paths(args) -> None:
         if Path(value).exists() and not Path(value).is_dir():
             raise ParameterError(f"`{name}` must be a folder, got {name}={value!r} (a file)")
         setattr(args, name, value)
+    from .. import runlog
     from ..cache import sweep_leftovers
+
+    runlog.start(args.cache)
 
     # What runs interrupted before this one left half-written (removed unless still running).
     sweep_leftovers(args.results, *(Path(args.cache) / d for d in ("rays", "summary", "pool", "camera")))
@@ -60,12 +67,14 @@ def _absolute_paths(args) -> None:
 
 
 def _cluster(args, command: str):
-    """The cluster ``args`` ask for (``--workers``, ``--threads``, ``--scheduler``, ``--scheduler-file``)."""
+    """The cluster ``args`` ask for (``--workers``, ``--threads``, ``--memory-limit``, ``--scheduler``,
+    ``--scheduler-file``); its logs go to the run's log file under ``--cache``."""
     from ..cluster import cluster
 
     return cluster(command, workers=None if args.workers is None else integer(args.workers, "workers", 1),
                    threads=None if args.threads is None else integer(args.threads, "threads", 1),
-                   scheduler=args.scheduler, scheduler_file=args.scheduler_file)
+                   memory=memory_limit(args.memory_limit), scheduler=args.scheduler,
+                   scheduler_file=args.scheduler_file)
 
 
 def cmd_study(args) -> int:
@@ -78,6 +87,7 @@ def cmd_study(args) -> int:
     if args.workers is not None:
         integer(args.workers, "workers", 1)
     _absolute_paths(args)
+    memory_limit(args.memory_limit)
     report = out_path(args.report, "report") if args.report is not None else None
     if report is not None and report.is_dir():
         raise ParameterError(f"`report` must be a file path, got report={args.report!r} (a folder)")
@@ -155,6 +165,7 @@ def cmd_camera(args) -> int:
     if args.workers is not None:
         integer(args.workers, "workers", 1)
     _absolute_paths(args)
+    memory_limit(args.memory_limit)
     study = load_camera(args.file, scale=args.scale)
     fit = "use fewer pixels or samples, a smaller or thinner sheet, or larger voxels"
     limits.check(limits.camera_estimate(study.images), what="`camera`", yes=True, disk_path=args.cache, fit=fit)

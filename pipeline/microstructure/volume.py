@@ -24,7 +24,7 @@ import zarr
 from zarr.codecs import BytesCodec, ZstdCodec
 
 from .. import __version__
-from ..cache import temp_name, warn
+from ..cache import temp_name, warn, writing
 from ..publish import check_replaceable
 from ..params import Grid, ParameterError, WoodParams
 from .model import generate_block
@@ -156,7 +156,8 @@ class ChunkFiles:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = temp_name(path, "tmp")
         try:
-            tmp.write_bytes(raw)
+            with writing(path, "micro", tmp):
+                tmp.write_bytes(raw)
             os.replace(tmp, path)
         except BaseException:
             tmp.unlink(missing_ok=True)

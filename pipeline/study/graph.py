@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .plan import Micro, Plan
 from .tasks import generate_chunks, pool_value, summarize_scene, trace_shard
@@ -18,6 +18,7 @@ class Graph:
     summaries: list  # delayed {"pool": ..., "chunks_generated": ...}, one per value
     n_trace: int
     n_summaries: int = 0
+    labels: dict = field(default_factory=dict)  # task key: what it computes, for the user's line
 
 
 def build_graph(plans: list[Plan]) -> Graph:
@@ -32,6 +33,7 @@ def build_graph(plans: list[Plan]) -> Graph:
     # Studies that share a wood (say study 1 and study 2) share its chunk tasks.
     todo: dict[str, set] = {}
     woods: dict[str, Micro] = {}
+    labels: dict[str, str] = {}
     for plan in plans:
         for m in plan.micros.values():
             todo.setdefault(m.key, set()).update(m.todo)
@@ -41,6 +43,8 @@ def build_graph(plans: list[Plan]) -> Graph:
     for key, m in woods.items():
         chunks = sorted(todo[key])
         micro_args[key] = arg = constant(m.slim(), f"wood-{key[:12]}")
+        for i in range(0, len(chunks), COLUMN_BATCH):
+            labels[f"micro-{key[:12]}-{i // COLUMN_BATCH}"] = f"wood chunks of {m.path}"
         micro_tasks[key] = [
             dask.delayed(generate_chunks, pure=False)(
                 arg, chunks[i:i + COLUMN_BATCH], dask_key_name=f"micro-{key[:12]}-{i // COLUMN_BATCH}")
@@ -54,11 +58,14 @@ def build_graph(plans: list[Plan]) -> Graph:
             if summ.cached:
                 continue
             scene = constant(plan.study.realisation(summ.scene_index, summ.realisation), f"scene-{summ.key[:12]}")
+            what = f"{plan.study.name} {plan.study.label(summ.scene_index)} realisation {summ.realisation}"
+            labels[f"summary-{summ.key[:12]}"] = f"{what}, summary"
             traced = []
             for shard in plan.shards_of(summ):
                 if not shard.cached:
                     n_trace += 1
                     wood = shard.micro
+                    labels[f"rays-{shard.key[:12]}"] = f"{what}, rays {shard.lo}-{shard.hi}"
                     traced.append(dask.delayed(trace_shard, pure=False)(
                         micro_args.get(wood), scene, constant(shard, f"shard-{shard.key[:12]}"),
                         *micro_tasks.get(wood, ()), dask_key_name=f"rays-{shard.key[:12]}"))
@@ -71,12 +78,13 @@ def build_graph(plans: list[Plan]) -> Graph:
             if pool.cached:
                 continue
             mine = plan.summaries_of(pool)
+            labels[f"pool-{pool.key[:12]}"] = f"{plan.study.name} {plan.study.label(pool.scene_index)}, pooling"
             shards = constant([plan.shards_of(s) for s in mine], f"pool-shards-{pool.key[:12]}")
             pools.append(dask.delayed(pool_value, pure=False)(
                 constant(plan.study.realisation(pool.scene_index, 0), f"scene0-{pool.key[:12]}"), constant(pool, f"poolarg-{pool.key[:12]}"), shards,
                 *[done[s.key] for s in mine if s.key in done], dask_key_name=f"pool-{pool.key[:12]}"))
     micro = [t for ts in micro_tasks.values() for t in ts]
-    return Graph(micro, pools, n_trace, len(summaries))
+    return Graph(micro, pools, n_trace, len(summaries), labels)
 
 
 def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
@@ -92,9 +100,14 @@ def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
         return report
     from ..progress import follow, graph_keys
 
+    from ..runlog import task_failure
+
     futures = client.compute(graph.micro + graph.summaries)
-    follow(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress)
-    results = client.gather(futures)
+    try:
+        follow(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress)
+        results = client.gather(futures)
+    except Exception as exc:
+        raise task_failure(exc, graph.labels) from exc
     n = len(graph.micro)
     report["chunks_generated"] = int(sum(results[:n]) + sum(r["chunks_generated"] for r in results[n:]))
     return report
