@@ -107,14 +107,16 @@ def window_line(ds, thickness_mm: float, haze_max: float) -> str:
     w = window(ds, thickness_mm, haze_max)
     n, p = w["negative"], w["positive"]
 
-    def edge(e: Edge, sign: str) -> str:
-        if e.beyond:
-            return f"beyond {sign}{e.value:.3g} (the map's edge: haze stays below the limit up to it)"
-        lo, hi = (e.lo, e.hi) if sign == "+" else (e.hi, e.lo)
-        return f"{sign}{e.value:.2g} [{sign}{lo:.2g}, {sign}{hi:.2g}]"
+    return (f"haze <= {100 * haze_max:g} % at {thickness_mm:g} mm for ΔRI from {edge_text(n, '-')} to "
+            f"{edge_text(p, '+')} (95 % intervals, wood-to-wood variation included)")
 
-    return (f"haze <= {100 * haze_max:g} % at {thickness_mm:g} mm for ΔRI from {edge(n, '-')} to "
-            f"{edge(p, '+')} (95 % intervals, wood-to-wood variation included)")
+
+def edge_text(e: Edge, sign: str) -> str:
+    """One side of a window as text: the edge and its interval, ordered along ΔRI."""
+    if e.beyond:
+        return f"beyond {sign}{e.value:.3g} (the map's edge)"
+    lo, hi = (e.lo, e.hi) if sign == "+" else (e.hi, e.lo)
+    return f"{sign}{e.value:.2g} [{sign}{lo:.2g}, {sign}{hi:.2g}]"
 
 
 def _with_zero(ds, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -191,3 +193,15 @@ def plot_windows(maps: dict, path: Path, levels=HAZE_LEVELS) -> Path:
     fig.savefig(path, dpi=80)
     plt.close(fig)
     return path
+
+
+def window_table(maps: dict, thicknesses=(0.25, 1.0, 2.0), limit: float = 0.1) -> list[str]:
+    """Markdown: per map and thickness, the ΔRI window keeping haze <= ``limit``, with intervals."""
+    lines = [f"| map | thickness (mm) | largest ΔRI < 0 for haze ≤ {100 * limit:g} % [95 % CI] | "
+             f"largest ΔRI > 0 [95 % CI] |", "|---|---|---|---|"]
+
+    for name, ds in maps.items():
+        for d in thicknesses:
+            w = window(ds, d, limit)
+            lines.append(f"| {name} | {d:g} | {edge_text(w['negative'], '-')} | {edge_text(w['positive'], '+')} |")
+    return lines

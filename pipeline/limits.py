@@ -31,9 +31,15 @@ RAY_BYTES = 512  # a ray's state, result and beam entry in one trace
 DATASET_RAY_BYTES = 24  # theta_r, theta_l, interfaces and status of a ray in a result Dataset
 BASE_MEMORY = 1 << 30  # the interpreter, compiled kernels and the chunk cache
 INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
-                   # exact: no wood generated, ~300 µs an interface with its region's tiles (BENCH.md)
-                   "exact": 3e-4}
-INTERFACES_PER_PITCH = 3.0  # interfaces met per cell pitch crossed (two walls, ray cells, vessels)
+                   # exact: no wood generated; 200-380 µs an interface with its region's tiles, more in
+                   # thicker samples (measured by tests/test_limits.py, within 1.5x)
+                   "exact": 2.4e-4}
+INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
+# What a study writes besides its wood (measured by tests/test_limits.py): per shard of rays an .npz
+# (headers and its record, then 120 B a ray), per wood and value a summary and per value a pool
+# (JSON, under 1 kB each), per study a Dataset (75 kB of metadata and numbers, then per ray
+# DATASET_RAY_BYTES; Table 1's compress to 17 B a ray).
+SHARD_BYTES, SHARD_RAY_BYTES, ENTRY_BYTES, DATASET_BYTES = 7e3, 120.0, 800.0, 75e3
 SPREAD = 2.0  # chunks generated around the beam's column by spreading rays, as a factor
 CHUNK = 64  # voxels along a chunk edge in the study cache
 SHOW_ESTIMATE_S = 60.0  # commands estimated above this many CPU-seconds print their estimate first
@@ -140,7 +146,8 @@ def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: 
 
 
 def study_estimate(scenes, *, shard_rays: int) -> Estimate:
-    """A study's scenes: each wood generated once (on disk), each scene's rays traced by shards."""
+    """A study's scenes: each wood generated once (on disk), each scene's rays traced by shards and
+    written with their summaries, pools and one Dataset."""
     est = Estimate()
     woods = {}
     for s in scenes:
@@ -156,9 +163,11 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
         n_shards = math.ceil(s.rays / shard_rays)
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))
-        est = est + Estimate(shard.cpu_s * n_shards, max(shard.memory, reduce), 0.0)
+        written = n_shards * SHARD_BYTES + s.rays * (SHARD_RAY_BYTES + DATASET_RAY_BYTES) + 2 * ENTRY_BYTES
+        est = est + Estimate(shard.cpu_s * n_shards, max(shard.memory, reduce), written)
     voxels = sum(woods.values())
-    return est + Estimate(voxels / GENERATE_VOXELS_PER_CPU_S, 0.0, voxels * DISK_BYTES_PER_VOXEL)
+    return est + Estimate(voxels / GENERATE_VOXELS_PER_CPU_S, 0.0,
+                          voxels * DISK_BYTES_PER_VOXEL + (DATASET_BYTES if scenes else 0.0))
 
 
 def camera_estimate(images) -> Estimate:

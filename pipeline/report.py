@@ -19,6 +19,7 @@ from .analysis import HAZE_ANGLE_DEG
 from .effects import (N_BOOT, TABLE1, TRADEOFF_TARGETS, Effect, all_effects_of, camera_rows, cheapest_meeting,
                       experiment_rows, fibre_tip_rows, fine_voxel_rows, load_table1, method_rows, reference_index,
                       setting_label, study_dimension, table1_rows)
+from .design import MAPS, window_table
 from .figures import open_dataset, table1_structures, traced_voxel, value_label
 
 # What geometrical optics leads one to expect of each study, before running it; the
@@ -445,6 +446,21 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add(f"![camera images]({fig}/camera.png)")
     add("")
+    maps = {n: open_dataset(base / "design" / f"{n}.zarr") for n in MAPS if (base / "design" / f"{n}.zarr").exists()}
+    if len(maps) == len(MAPS):
+        d0 = next(iter(maps.values()))
+        add("## Design maps: how well must the polymer match?")
+        add("")
+        add(f"Haze and FWHM_R over thickness × ΔRI (`make design`, `exact`, {d0.attrs['realisations']} woods × "
+            f"{d0.attrs['rays']} rays a cell; docs/methods.md#design-maps). At ΔRI = 0 haze is 0 exactly. The "
+            "largest |ΔRI| that keeps haze at or below 10 %, interpolated on the maps (`twray design` answers "
+            "the same for any thickness and limit):")
+        add("")
+        L.extend(window_table(maps))
+        add("")
+        add(f"![design maps]({fig}/design-maps.png)")
+        add(f"![ΔRI windows]({fig}/design-windows.png)")
+        add("")
     add("## Speed against accuracy")
     add("")
     add(f"From `make tradeoff` ({len(tradeoff['point'])} settings, each traced cold in its own process on a "
@@ -482,6 +498,8 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     else:
         add("| Table 1, this report's scale | `make table1 SCALE=paper YES=1` | not recorded |")
     add(f"| Figure 5 | `make camera SCALE=paper` | {_minutes(cam['cold_s'])} cold |")
+    if "design_paper" in st:
+        add(f"| design maps | `make design SCALE=paper YES=1` | {_minutes(st['design_paper']['cold_s'])} cold |")
     add(f"| speed against accuracy | `make tradeoff` | {_minutes(float(tradeoff.attrs['seconds']))} |")
     add("| figures | `make figures` | about 2.5 min (sections and trajectories are computed) |")
     add("| this report | `make report` | about 40 s (the bootstraps of the effects and the methods) |")

@@ -11,12 +11,12 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent / "pipeline"
 # Floors, bottom first: a module imports only its own floor and those below.
 FLOORS = [
     {"pipeline", "pipeline.versions", "pipeline.params", "pipeline.rng", "pipeline._intrinsics", "pipeline.cache",
-     "pipeline.progress", "pipeline.analysis", "pipeline.provenance", "pipeline.publish"},
+     "pipeline.progress", "pipeline.analysis", "pipeline.provenance", "pipeline.publish", "pipeline.runlog"},
     {"pipeline.microstructure"},
     {"pipeline.optics"},
     {"pipeline.limits", "pipeline.study", "pipeline.camera"},
     {"pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.inventory", "pipeline.trace_job",
-     "pipeline.cluster"},
+     "pipeline.cluster", "pipeline.design"},
     {"pipeline.cli", "pipeline.__main__"},
 ]
 MAX_LINES = 650  # one concept a file: about 600 lines at most
