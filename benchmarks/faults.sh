@@ -76,3 +76,13 @@ cmp -s <(grep delta_ri= o1.txt) <(grep delta_ri= ref.txt) && cmp -s <(grep delta
 echo "## leftovers of an interrupted dataset write"
 mkdir r/.faults.zarr.partial-deadbeefhost-1-0123abcd; touch -d '2 days ago' r/.faults.zarr.partial-deadbeefhost-1-0123abcd
 run $S; ls -a r
+echo "## a full disk at each stage (TWRAY_FAULT_ENOSPC=<stage>:0 fails that stage's writes as ENOSPC), then a rerun"
+for stage in micro rays summary pool dataset; do
+  rm -rf c r; TWRAY_FAULT_ENOSPC=$stage:0 "$TW" $S > out.txt 2> err.txt; rc=$?
+  echo "  $stage: exit $rc; $(grep -vc '^twray study: ' err.txt) line(s): $(grep -v '^twray study: ' err.txt | cut -c1-230)"
+  run $S; cmp -s <(grep delta_ri= out.txt) <(grep delta_ri= ref.txt) && echo "  rerun identical to the undamaged run"
+done
+echo "## a worker over its memory limit (each task first holds 700 MB; --memory-limit 400MB)"
+rm -rf c r; TWRAY_FAULT_MEMORY_MB=700 "$TW" $S --memory-limit 400MB > out.txt 2> err.txt; echo "  exit $?: $(grep -v '^twray study: ' err.txt | cut -c1-260)"
+echo "  the log: $(grep -c 'memory' c/logs/*.log) lines about memory in $(ls c/logs)"
+run $S; cmp -s <(grep delta_ri= out.txt) <(grep delta_ri= ref.txt) && echo "  rerun identical to the undamaged run"
