@@ -39,6 +39,7 @@ class Edge:
     lo: float
     hi: float
     beyond: bool = False
+    below: bool = False  # the edge lies below the map's smallest |ΔRI|: on the line from ΔRI = 0
 
 
 def _crossing(x: np.ndarray, y: np.ndarray, level: float) -> tuple[float, bool]:
@@ -81,7 +82,8 @@ def window(ds, thickness_mm: float, haze_max: float) -> dict[str, Edge]:
         for name in ("haze", "haze_ci_upper", "haze_ci_lower"):
             y = np.concatenate([[0.0], at[name].values[pick]])
             edge[name] = _crossing(x, y, haze_max)
-        out[side] = Edge(edge["haze"][0], edge["haze_ci_upper"][0], edge["haze_ci_lower"][0], edge["haze"][1])
+        e = edge["haze"][0]
+        out[side] = Edge(e, edge["haze_ci_upper"][0], edge["haze_ci_lower"][0], edge["haze"][1], e < x[1])
     return out
 
 
@@ -111,12 +113,12 @@ def window_line(ds, thickness_mm: float, haze_max: float) -> str:
             f"{edge_text(p, '+')} (95 % intervals, wood-to-wood variation included)")
 
 
-def edge_text(e: Edge, sign: str) -> str:
+def edge_text(e: Edge, sign: str, note: str = " (below the map's smallest |ΔRI|: on the line from ΔRI = 0)") -> str:
     """One side of a window as text: the edge and its interval, ordered along ΔRI."""
     if e.beyond:
         return f"beyond {sign}{e.value:.3g} (the map's edge)"
     lo, hi = (e.lo, e.hi) if sign == "+" else (e.hi, e.lo)
-    return f"{sign}{e.value:.2g} [{sign}{lo:.2g}, {sign}{hi:.2g}]"
+    return f"{sign}{e.value:.2g} [{sign}{lo:.2g}, {sign}{hi:.2g}]{note if e.below else ''}"
 
 
 def _with_zero(ds, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -203,5 +205,5 @@ def window_table(maps: dict, thicknesses=(0.25, 1.0, 2.0), limit: float = 0.1) -
     for name, ds in maps.items():
         for d in thicknesses:
             w = window(ds, d, limit)
-            lines.append(f"| {name} | {d:g} | {edge_text(w['negative'], '-')} | {edge_text(w['positive'], '+')} |")
+            lines.append(f"| {name} | {d:g} | {edge_text(w['negative'], '-', ' †')} | {edge_text(w['positive'], '+', ' †')} |")
     return lines

@@ -454,7 +454,9 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         add(f"Haze and FWHM_R over thickness × ΔRI (`make design`, `exact`, {d0.attrs['realisations']} woods × "
             f"{d0.attrs['rays']} rays a cell; docs/methods.md#design-maps). At ΔRI = 0 haze is 0 exactly. The "
             "largest |ΔRI| that keeps haze at or below 10 %, interpolated on the maps (`twray design` answers "
-            "the same for any thickness and limit):")
+            "the same for any thickness and limit). † marks an edge below the map's smallest |ΔRI| "
+            f"({float(abs(d0['delta_ri']).min()):g}) it rests on the line from haze 0 at ΔRI = 0, an assumption: "
+            "add smaller values to the maps' `vary.delta_ri` (only the new cells are traced) to measure it.")
         add("")
         L.extend(window_table(maps))
         add("")
