@@ -31,9 +31,10 @@ RAY_BYTES = 512  # a ray's state, result and beam entry in one trace
 DATASET_RAY_BYTES = 24  # theta_r, theta_l, interfaces and status of a ray in a result Dataset
 BASE_MEMORY = 1 << 30  # the interpreter, compiled kernels and the chunk cache
 INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
-                   # exact: no wood generated; 200-380 µs an interface with its region's tiles, more in
-                   # thicker samples (measured by tests/test_limits.py, within 1.5x)
-                   "exact": 2.4e-4}
+                   # exact: no wood generated; ~130 µs an interface, plus REGION_CPU_S a trace (measured
+                   # by tests/test_limits.py, within 1.5x; 2 mm at ΔRI < 0 takes up to 2x: regions widen)
+                   "exact": 1.3e-4}
+REGION_CPU_S = 0.9  # exact: building the region of generated wood around a beam, once a trace (a shard)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
 # What a study writes besides its wood (measured by tests/test_limits.py): per shard of rays an .npz
 # (headers and its record, then 120 B a ray), per wood and value a summary and per value a pool
@@ -142,6 +143,7 @@ def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: 
     memory = BASE_MEMORY + rays * RAY_BYTES + (0 if store else voxels * MEMORY_BYTES_PER_WOOD_VOXEL)
     if generated and METHODS.get(method) == "surfaces":
         memory += surface_region_bytes(beam_um, thickness_um, pitch_um)
+        cpu += REGION_CPU_S
     return Estimate(cpu, memory, voxels * DISK_BYTES_PER_VOXEL if store else 0.0)
 
 

@@ -231,7 +231,7 @@ def test_the_camera_generates_the_sheets_wood_once_and_traces_every_pixels_apert
 
 
 # ---------------------------------------------------------------------- estimates against measurements
-@pytest.mark.parametrize("preset, thickness_um, rays", [("birch", 500.0, 80), ("balsa", 1000.0, 60)])
+@pytest.mark.parametrize("preset, thickness_um, rays", [("birch", 500.0, 80), ("balsa", 1000.0, 150)])
 def test_exacts_cpu_estimate_is_within_1_5x_of_what_a_trace_takes(preset, thickness_um, rays):
     """The CPU time of one `exact` trace, measured here (kernels compiled, one thread), against its
     estimate: no more than 1.5x apart either way."""

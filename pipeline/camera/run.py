@@ -111,7 +111,7 @@ def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROW
     for e in entries:
         if e.cached:
             continue
-        labels[f"camera-image-{e.key[:12]}"] = f"camera image {e.config.name}"
+        labels[f"camera-image-{e.key[:12]}"] = labels[f"camera-config-{e.key[:12]}"] = f"camera image {e.config.name}"
         cfg = dask.delayed(e.config, name=f"camera-config-{e.key[:12]}", traverse=False)
         ny = e.config.camera.pixels[0]
         blocks = [dask.delayed(render_block, pure=False)(

@@ -45,6 +45,7 @@ def build_graph(plans: list[Plan]) -> Graph:
         micro_args[key] = arg = constant(m.slim(), f"wood-{key[:12]}")
         for i in range(0, len(chunks), COLUMN_BATCH):
             labels[f"micro-{key[:12]}-{i // COLUMN_BATCH}"] = f"wood chunks of {m.path}"
+        labels[f"wood-{key[:12]}"] = f"wood chunks of {m.path}"
         micro_tasks[key] = [
             dask.delayed(generate_chunks, pure=False)(
                 arg, chunks[i:i + COLUMN_BATCH], dask_key_name=f"micro-{key[:12]}-{i // COLUMN_BATCH}")
@@ -59,13 +60,16 @@ def build_graph(plans: list[Plan]) -> Graph:
                 continue
             scene = constant(plan.study.realisation(summ.scene_index, summ.realisation), f"scene-{summ.key[:12]}")
             what = f"{plan.study.name} {plan.study.label(summ.scene_index)} realisation {summ.realisation}"
-            labels[f"summary-{summ.key[:12]}"] = f"{what}, summary"
+            # A worker that dies may be holding a task's arguments: they are named after its scene too.
+            for name in ("summary", "scene", "summ", "shards"):
+                labels[f"{name}-{summ.key[:12]}"] = f"{what}, summary"
             traced = []
             for shard in plan.shards_of(summ):
                 if not shard.cached:
                     n_trace += 1
                     wood = shard.micro
-                    labels[f"rays-{shard.key[:12]}"] = f"{what}, rays {shard.lo}-{shard.hi}"
+                    for name in ("rays", "shard"):
+                        labels[f"{name}-{shard.key[:12]}"] = f"{what}, rays {shard.lo}-{shard.hi}"
                     traced.append(dask.delayed(trace_shard, pure=False)(
                         micro_args.get(wood), scene, constant(shard, f"shard-{shard.key[:12]}"),
                         *micro_tasks.get(wood, ()), dask_key_name=f"rays-{shard.key[:12]}"))
@@ -78,7 +82,8 @@ def build_graph(plans: list[Plan]) -> Graph:
             if pool.cached:
                 continue
             mine = plan.summaries_of(pool)
-            labels[f"pool-{pool.key[:12]}"] = f"{plan.study.name} {plan.study.label(pool.scene_index)}, pooling"
+            for name in ("pool", "pool-shards", "scene0", "poolarg"):
+                labels[f"{name}-{pool.key[:12]}"] = f"{plan.study.name} {plan.study.label(pool.scene_index)}, pooling"
             shards = constant([plan.shards_of(s) for s in mine], f"pool-shards-{pool.key[:12]}")
             pools.append(dask.delayed(pool_value, pure=False)(
                 constant(plan.study.realisation(pool.scene_index, 0), f"scene0-{pool.key[:12]}"), constant(pool, f"poolarg-{pool.key[:12]}"), shards,
