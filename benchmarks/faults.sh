@@ -82,7 +82,7 @@ for stage in micro rays summary pool dataset; do
   echo "  $stage: exit $rc; $(grep -vc '^twray study: ' err.txt) line(s): $(grep -v '^twray study: ' err.txt | cut -c1-230)"
   run $S; cmp -s <(grep delta_ri= out.txt) <(grep delta_ri= ref.txt) && echo "  rerun identical to the undamaged run"
 done
-echo "## a worker over its memory limit (each task first holds 700 MB; --memory-limit 400MB)"
-rm -rf c r; TWRAY_FAULT_MEMORY_MB=700 "$TW" $S --memory-limit 400MB > out.txt 2> err.txt; echo "  exit $?: $(grep -v '^twray study: ' err.txt | cut -c1-260)"
+echo "## a worker over its memory limit (each task first holds 1.5 GB; --memory-limit 1GB)"
+rm -rf c r; TWRAY_FAULT_MEMORY_MB=1500 "$TW" $S --memory-limit 1GB > out.txt 2> err.txt; echo "  exit $?: $(grep -v '^twray study: ' err.txt | cut -c1-260)"
 echo "  the log: $(grep -c 'memory' c/logs/*.log) lines about memory in $(ls c/logs)"
 run $S; cmp -s <(grep delta_ri= out.txt) <(grep delta_ri= ref.txt) && echo "  rerun identical to the undamaged run"

@@ -96,7 +96,9 @@ def graph_client(command: str, *, workers: int | None = None, threads: int | Non
     workers = workers if workers is not None else default
     threads = threads if threads is not None else max(1, cores // workers)
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC}
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+    # A worker near its memory limit is not paused: twray's tasks hold no data Dask could spill, so
+    # a paused worker would wait for ever; past the limit the nanny restarts it and the task is retried.
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ, "distributed.worker.memory.pause": False}):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True,
                                **({"memory_limit": memory} if memory is not None else {}))
     return Client(cluster), cluster

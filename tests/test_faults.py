@@ -126,11 +126,11 @@ def test_a_worker_killed_mid_task_is_replaced_and_the_numbers_are_the_same(tmp_p
 
 def test_a_worker_over_its_memory_limit_is_one_line_and_the_rerun_is_whole(tmp_path, monkeypatch, capsys, clean):
     path = study(tmp_path)
-    monkeypatch.setenv(FAULT_MEMORY_ENV, "700")
-    assert main(args(path, tmp_path, "--memory-limit", "400MB")) == 1
+    monkeypatch.setenv(FAULT_MEMORY_ENV, "1500")
+    assert main(args(path, tmp_path, "--memory-limit", "1GB")) == 1
     err = capsys.readouterr().err
     assert_one_line(err, "a worker died running faults delta_ri=", "over its memory limit", "--memory-limit")
     assert_nothing_half_written(tmp_path, capsys)
     monkeypatch.delenv(FAULT_MEMORY_ENV)
-    assert main(args(path, tmp_path, "--memory-limit", "400MB")) == 0
+    assert main(args(path, tmp_path, "--memory-limit", "1GB")) == 0
     assert_same(tmp_path, clean["exact"])
