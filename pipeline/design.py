@@ -201,7 +201,6 @@ def window_table(maps: dict, thicknesses=(0.25, 1.0, 2.0), limit: float = 0.1) -
     """Markdown: per map and thickness, the ΔRI window keeping haze <= ``limit``, with intervals."""
     lines = [f"| map | thickness (mm) | largest ΔRI < 0 for haze ≤ {100 * limit:g} % [95 % CI] | "
              f"largest ΔRI > 0 [95 % CI] |", "|---|---|---|---|"]
-
     for name, ds in maps.items():
         for d in thicknesses:
             w = window(ds, d, limit)

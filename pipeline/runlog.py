@@ -28,9 +28,13 @@ class RunFailed(Exception):
     """A run stopped by its environment (a full disk, a dying worker, memory): its one line, exit 1."""
 
 
+def _temp_log() -> Path:
+    return Path(tempfile.gettempdir()) / f"twray-{time.strftime('%Y%m%d')}.log"
+
+
 def log_file() -> Path:
     """This run's log file (the temporary folder's until :func:`start` names a cache)."""
-    return _state["path"] or Path(tempfile.gettempdir()) / f"twray-{time.strftime('%Y%m%d')}.log"
+    return _state["path"] or _temp_log()
 
 
 class _LazyFile(logging.FileHandler):
@@ -91,16 +95,16 @@ def quiet_workers(client) -> None:
 
 def record(exc: BaseException, what: str = "") -> Path:
     """Append ``exc``'s traceback to the log file; returns the file."""
-    path = log_file()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a") as f:
-            f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} pid {os.getpid()} twray ERROR: {what or 'failure'}\n")
-            f.write("".join(traceback.format_exception(exc)))
-    except OSError:  # the disk that failed may hold the log too: the temporary folder then
-        path = Path(tempfile.gettempdir()) / f"twray-{time.strftime('%Y%m%d')}.log"
-        with open(path, "a") as f:
-            f.write("".join(traceback.format_exception(exc)))
+    text = (f"{time.strftime('%Y-%m-%d %H:%M:%S')} pid {os.getpid()} twray ERROR: {what or 'failure'}\n"
+            + "".join(traceback.format_exception(exc)))
+    for path in (log_file(), _temp_log()):  # the disk that failed may hold the log too
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "a") as f:
+                f.write(text)
+            return path
+        except OSError:
+            continue
     return path
 
 
