@@ -149,16 +149,59 @@ def test_the_rows_at_a_point_do_not_depend_on_the_region_built_around_it(variant
     rng = np.random.default_rng(4)
     pts = np.column_stack([rng.uniform(-5, 5, 300), rng.uniform(0, 79, 300), rng.uniform(-5, 5, 300)])
     rows = []
-    for margin in (5.0, 400.0):
-        ctx = R.context_tuple(R.region_context(p, 2, 80.0, (-margin, margin), (-margin, margin)))
+    for margin, t_range in ((5.0, None), (400.0, None), (5.0, (0.0, 80.0)), (6.0, (-1.0, 81.0))):
+        ctx = R.context_tuple(R.region_context(p, 2, 80.0, (-margin, margin), (-margin, margin), t_range))
         P = np.empty((MAX_PRIMS, N_COLS))
         out = []
         for x in pts:
             ph, n = evaluate_at(x[0], x[1], x[2], 0.0, ctx, P, new_cache(), np.zeros(5))
             out.append((ph, P[:n].copy()))
         rows.append(out)
-    for (pa, ra), (pb, rb) in zip(*rows):
-        assert pa == pb and np.array_equal(ra, rb)
+    for other in rows[1:]:
+        for (pa, ra), (pb, rb) in zip(rows[0], other):
+            assert pa == pb and np.array_equal(ra, rb)
+    # A region over part of a thicker slab: each point has the rows of the whole slab's region, or
+    # none (255) where the region's tiles do not reach.
+    deep = np.column_stack([pts[:, 0], 5.0 * pts[:, 1], pts[:, 2]])  # T in [0, 395]
+    whole = R.context_tuple(R.region_context(p, 2, 400.0, (-5.0, 5.0), (-5.0, 5.0)))
+    part = R.context_tuple(R.region_context(p, 2, 400.0, (-5.0, 5.0), (-5.0, 5.0), (150.0, 200.0)))
+    P = np.empty((MAX_PRIMS, N_COLS))
+    Q = np.empty((MAX_PRIMS, N_COLS))
+    seen = 0
+    for x in deep:
+        ph, n = evaluate_at(x[0], x[1], x[2], 0.0, whole, P, new_cache(), np.zeros(5))
+        got, m = evaluate_at(x[0], x[1], x[2], 0.0, part, Q, new_cache(), np.zeros(5))
+        if 150.0 <= x[1] <= 200.0:
+            assert got != 255
+        if got != 255:
+            seen += 1
+            assert got == ph and np.array_equal(P[:n], Q[:m])
+    assert 30 < seen < 250  # the part's tiles reach a little beyond it, not the whole slab
+
+
+@pytest.mark.parametrize("preset, changes, thickness_um, delta_ri", [
+    ("birch", {}, 1000.0, -0.03), ("birch", {"laminate": (0, -45, 90, 45, 0)}, 500.0, -0.02)])
+def test_rays_that_leave_their_region_go_on_as_if_it_had_held_them(preset, changes, thickness_um, delta_ri):
+    """A ray that leaves the region built around the beam goes on from its last segment's start in a
+    region around it: with regions a few µm wide (hundreds of them, every ray leaving many times)
+    every number of every ray, its logged interfaces included, is bit for bit that of regions wide
+    enough to leave rarely.  The rays are oblique (they cross a millimetre of R and L), and at
+    ΔRI < 0 some are guided further."""
+    p = build_params(preset, overrides=changes)
+    beam = square_beam(16, 100.0, seed=3)
+    runs = []
+    for margin in (None, 4.0):
+        surf = WoodSurface(p, thickness_um=thickness_um, seed=3, threads=2, margin_um=margin)
+        dirs = np.tile(np.array([0.7, 0.6, 0.4]) / math.sqrt(1.01), (len(beam.origins), 1))  # oblique: they go far
+        out = surf.trace_surfaces(beam.origins, dirs, n_wall=1.49 + delta_ri, n_poly=1.49,
+                                  max_events=100_000, log_events=400)
+        runs.append((surf.left, out))
+    (few, wide), (many, narrow) = runs
+    assert many > 100 and many > 3 * few
+    assert set(wide) == set(narrow)
+    for name in wide:
+        assert np.array_equal(wide[name], narrow[name]), name
+    assert (wide["status"] == interface.TRANSMITTED).sum() > 8
 
 
 def _missed_along_path(surf, origin, direction, n_wall, n_poly, per_um):

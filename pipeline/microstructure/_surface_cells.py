@@ -18,7 +18,7 @@ from ._vessels import member_of
 from ._surface_rows import (P_FACE, P_LUMEN, P_PLATE, P_REACH, P_TIP, P_TIP_END, R_NODE, R_TIP, R_WALL,
                             _ellipse_margin, _row)
 
-CACHE_SLOTS = 8192  # direct-mapped cache of control values and fibre cells (a power of 2)
+CACHE_SLOTS = 1 << 15  # direct-mapped cache of control values and fibre cells (a power of 2)
 
 
 def new_cache():

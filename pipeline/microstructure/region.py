@@ -52,14 +52,17 @@ def _patch_lipschitz(seed, M, gi0: int, gj0: int, shape, G: float) -> np.ndarray
     return out
 
 
-def region_context(params, seed: int, thickness_um: float, r_range, l_range) -> dict:
-    """What :func:`evaluate` needs for the slab T ∈ [0, thickness] over R ∈ r_range, L ∈ l_range
-    [µm]: per ply its placement, seed, distortion grid (assembled from the generator's cached
-    tiles), pull-back bound and vessels; arrays padded to the largest ply."""
+def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_range=None) -> dict:
+    """What :func:`evaluate` needs for the slab T ∈ [0, thickness] (or its part ``t_range``) over
+    R ∈ r_range, L ∈ l_range [µm]: per ply its placement, seed, distortion grid (assembled from the
+    generator's cached tiles), pull-back bound and vessels; arrays padded to the largest ply.
+    Every ply of the slab is listed (a point's rows name the plies around it), each with its grid
+    over the part of ``t_range`` it holds (none: a point there is outside the region)."""
     from . import _constants as K
     from ._vessels import vessels_in_region
 
     M = model_constants(params)
+    t_range = (0.0, thickness_um) if t_range is None else t_range
     c = params.node_pitch_um
     G = c / K.GRID_PER_PITCH
     stats = np.zeros(N_STATS, np.int64)
@@ -68,7 +71,8 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range) -> 
     for _, cs, sn, oR, oT, oL, ply_seed, t0, t1 in plies:
         corners = [cs * r + sn * l + oR for r in r_range for l in l_range]
         r_lo, r_hi = min(corners), max(corners)
-        tt_lo, tt_hi = max(t0, 0.0) + oT, min(t1, thickness_um) + oT
+        tt_lo, tt_hi = max(t0, 0.0, t_range[0]) + oT, min(t1, thickness_um, t_range[1]) + oT
+        tt_hi = max(tt_hi, tt_lo)
         pseed = np.uint64(ply_seed)
         patch, gi0, gj0 = _patch(pseed, M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0, stats)
         dmax = float(np.abs(patch).max())

@@ -263,12 +263,20 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, ca
 
 @njit(cache=True, nogil=True)
 def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fseed, ctx,
-               hit, tol, h_grad, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache):
+               hit, tol, h_grad, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache,
+               resume, skips, stop):
     """Trace rays from ``pos`` (N, 3) [µm] with unit ``dirs`` through the wood between T = 0 and
     T = ``thickness``; writes the exit point and direction, status, interfaces, path length [µm],
     the number of point evaluations and of surfaces passed without a phase change, and the phase
     each ray ends in.  ``log`` (N, E, 12) or empty: per ray its first E interfaces, (point,
     primitive key, normal, phase after).
+
+    A ray that leaves the region (status NEEDS_REGION) ends where its last straight segment began,
+    with the state it had there (interfaces, path, evaluations, passes, phase, the primitive
+    crossed last in ``skips``), and ``stop`` where it left; traced again from there with
+    ``resume`` 1 (its state read from the same arrays) in a region that holds it, it goes on
+    exactly as if the region had held it all along (255 in ``medium_out``: it stopped before its
+    first phase was known, and starts afresh).
 
     Each step: A, the primitive of least clearance, and the least clearance of the others.  Outside
     A the step is A's clearance; inside A's negative set, as far as the others allow (it meets a
@@ -289,6 +297,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     e = np.empty(3)
     every = np.zeros(5)
     prev_key = np.zeros(5)
+    seg_skip = np.zeros(5)
     lq = 0.0
     for r in range(pos.shape[0]):
         # The ray is X0 + s·d on each straight segment: points are never accumulated step by
@@ -301,11 +310,25 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
         ne = 0
         npass = 0
         length = 0.0
+        again = resume[r] != 0 and medium_out[r] != 255
+        if again:
+            ev = events[r]
+            ne = evals[r]
+            npass = passes[r]
+            length = path[r]
+            for q in range(5):
+                skip[q] = skips[r, q]
+        # The state at the start of the current segment, for a ray that leaves the region.
+        seg_ne = ne
+        seg_npass = npass
+        for q in range(5):
+            seg_skip[q] = skip[q]
         st = 0
         s = 0.0
-        med, n = surface_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
+        ph0, n = surface_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
+        med = np.uint8(medium_out[r]) if again else ph0
         ne += 1
-        if med == 255:
+        if ph0 == 255:
             st = NEEDS_REGION
         t_face = _face(X, d, thickness)
         have = True  # P holds the rows at s (the previous step's end, or the start)
@@ -537,15 +560,22 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             t_face = _face(X, d, thickness)
             for q in range(5):
                 skip[q] = 0.0 if _regime(key[0]) else key[q]
-        if st == NEEDS_REGION:  # where it stopped: the caller's next region holds it
-            for q in range(3):
-                X[q] += s * d[q]
+            seg_ne = ne
+            seg_npass = npass
+            for q in range(5):
+                seg_skip[q] = skip[q]
         for q in range(3):
             out_pos[r, q] = X[q]
             out_dir[r, q] = d[q]
+            stop[r, q] = X[q] + s * d[q]
         status[r] = st
         events[r] = ev
         path[r] = length
         evals[r] = ne
         passes[r] = npass
-        medium_out[r] = med if med != 255 else 0
+        medium_out[r] = med
+        if st == NEEDS_REGION:  # the segment's start: the caller's next region holds the rest
+            evals[r] = seg_ne
+            passes[r] = seg_npass
+            for q in range(5):
+                skips[r, q] = seg_skip[q]

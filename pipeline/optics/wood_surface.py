@@ -27,7 +27,9 @@ from ._surface_march import HIT, NEEDS_REGION, TOL, march
 H_GRAD = 1e-6  # central-difference step of a normal
 STEP_SCALE = 1.0  # fraction of the clearance stepped (1: the whole proven clearance)
 NAMES = ("position", "direction", "status", "events", "path", "evaluations", "passes", "medium")
-FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickness; doubled for rays that leave it
+FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickness (the base margin)
+AHEAD_MAX = 8.0  # a ray that leaves a region goes on in one reaching 2, 4, then at most 8 base margins ahead
+MAX_ROUNDS = 10_000  # regions a beam may need before its rays count as lost (each goes 2-8 base margins further)
 
 
 class WoodSurface:
@@ -35,20 +37,52 @@ class WoodSurface:
     unbounded along R and L, as a surface medium (method ``exact``)."""
 
     def __init__(self, params: WoodParams, *, thickness_um: float, seed: int = 1, threads: int = 1,
-                 hit: float = HIT, tol: float = TOL, h_grad: float = H_GRAD, step_scale: float = STEP_SCALE):
+                 hit: float = HIT, tol: float = TOL, h_grad: float = H_GRAD, step_scale: float = STEP_SCALE,
+                 margin_um: float | None = None):
         self.params = params
         self.thickness_um = float(thickness_um)
         self.seed = int(seed)
         self.hit, self.tol, self.h_grad, self.step_scale = float(hit), float(tol), float(h_grad), float(step_scale)
         self.token = ("wood-surfaces", json.dumps(params.to_dict(), sort_keys=True), self.seed, self.thickness_um)
+        # The base margin of regions [µm]; it changes how many are built, never a ray's numbers.
+        self.margin_um = FIRST_MARGIN_UM + 0.05 * self.thickness_um if margin_um is None else float(margin_um)
+        self.left = 0  # times a ray left its region and went on in another
         self.regions = 0  # region contexts built (each widening counts)
         self.threads = max(1, int(threads))  # slices of a beam traced side by side
 
     def _context(self, pos: np.ndarray, margin: float) -> tuple:
-        self.regions += 1
         r = (float(np.min(pos[:, 0])) - margin, float(np.max(pos[:, 0])) + margin)
         l = (float(np.min(pos[:, 2])) - margin, float(np.max(pos[:, 2])) + margin)
-        return context_tuple(region_context(self.params, self.seed, self.thickness_um, r, l))
+        return self._box(r, l)
+
+    def _box(self, r: tuple, l: tuple, t: tuple | None = None) -> tuple:
+        self.regions += 1
+        return context_tuple(region_context(self.params, self.seed, self.thickness_um, r, l, t))
+
+    def _regions(self, todo, start, stop, heading, ahead, base) -> list:
+        """Regions for the rays ``todo`` that left theirs: rays that stopped in one cube of 4·``base``
+        [µm] share one, the box around their last segments (start to stop) widened by ``base``, and
+        along each ray's heading by ``ahead`` more (in proportion on the axes it moves less along),
+        within the sample's thickness."""
+        if not todo.size:
+            return []
+        a, b, h = start[todo], stop[todo], heading[todo]
+        # ahead along the heading's largest component, in proportion along the others
+        far = ahead[todo] / np.maximum(np.abs(h).max(axis=1), 1e-300)
+        box = []
+        for axis in range(3):
+            lo = np.minimum(a[:, axis], b[:, axis]) - base - np.where(h[:, axis] < 0.0, -h[:, axis] * far, 0.0)
+            hi = np.maximum(a[:, axis], b[:, axis]) + base + np.where(h[:, axis] > 0.0, h[:, axis] * far, 0.0)
+            box.append((lo, hi))
+        cells = np.floor(b / (4.0 * base)).astype(np.int64)
+        _, which = np.unique(cells, axis=0, return_inverse=True)
+        which = which.reshape(-1)
+        groups = []
+        for g in range(which.max() + 1):
+            m = which == g
+            r, t, l = ((float(lo[m].min()), float(hi[m].max())) for lo, hi in box)
+            groups.append((todo[m], self._box(r, l, (max(t[0], 0.0), min(t[1], self.thickness_um)))))
+        return groups
 
     def entry_phase(self, origins_um: np.ndarray) -> np.ndarray:
         """The phase (1 wall, 0 polymer) at each entry point (T taken as 0)."""
@@ -67,39 +101,56 @@ class WoodSurface:
                "status": np.full(n, NEEDS_REGION, np.int64), "events": np.zeros(n, np.int64),
                "path": np.zeros(n), "evaluations": np.zeros(n, np.int64), "passes": np.zeros(n, np.int64),
                "medium": np.zeros(n, np.uint8)}
-        margin = FIRST_MARGIN_UM + 0.05 * self.thickness_um
-        todo = np.arange(n)
-        reached = pos0.copy()  # a ray that leaves a region is traced again in one around its path so far
-        while todo.size:
-            ctx = self._context(np.concatenate([pos0[todo], reached[todo]]), margin)
-            k = todo.size
-            res = [np.empty((k, 3)), np.empty((k, 3)), np.empty(k, np.int64), np.empty(k, np.int64),
-                   np.empty(k), np.empty(k, np.int64), np.empty(k, np.int64), np.empty(k, np.uint8)]
-            log = np.zeros((k, log_events, 12) if log_events else (0, 0, 12))
+        base = self.margin_um
+        log = np.zeros((n, log_events, 12) if log_events else (0, 0, 12))
+        resume = np.zeros(n, np.uint8)
+        skips = np.zeros((n, 5))
+        stop = np.empty((n, 3))
+        start, heading = pos0.copy(), dirs0.copy()  # where each ray (re)starts: its last segment
+        ahead = np.full(n, base)  # how far a ray's next region reaches along its heading
+        groups = [(np.arange(n), self._context(pos0, base))]
+        rounds = 0
+        while groups:
+            left = []
+            for todo, ctx in groups:
+                k = todo.size
+                res = [out[name][todo] for name in NAMES] + [skips[todo], stop[todo], log[todo] if log_events else log]
 
-            def run(lo, hi, pos=pos0[todo], dirs=dirs0[todo], rid=ids[todo], ctx=ctx, res=res, log=log):
-                # Rays are independent: slices of the beam run side by side (the kernel releases the GIL).
-                march(pos[lo:hi], dirs[lo:hi], rid[lo:hi], self.thickness_um, float(n_wall), float(n_poly),
-                      int(max_events), bool(fresnel), np.uint64(seed), ctx, self.hit, self.tol, self.h_grad,
-                      self.step_scale, *(a[lo:hi] for a in res), log[lo:hi] if log_events else log, new_cache())
+                def run(lo, hi, todo=todo, ctx=ctx, res=res):
+                    # Rays are independent: slices of the beam run side by side (the kernel releases the GIL).
+                    march(start[todo[lo:hi]], heading[todo[lo:hi]], ids[todo[lo:hi]], self.thickness_um,
+                          float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed), ctx,
+                          self.hit, self.tol, self.h_grad, self.step_scale, *(a[lo:hi] for a in res[:8]),
+                          res[10][lo:hi] if log_events else res[10], new_cache(), resume[todo[lo:hi]],
+                          res[8][lo:hi], res[9][lo:hi])
 
-            parts = min(self.threads, max(1, k // 16))
-            cuts = np.linspace(0, k, parts + 1).astype(int)
-            if parts > 1:
-                with ThreadPoolExecutor(parts) as pool:
-                    list(pool.map(run, cuts[:-1], cuts[1:]))
-            else:
-                run(0, k)
-            if log_events:
-                out.setdefault("log", np.zeros((n, log_events, 12)))[todo] = log
-            for name, arr in zip(NAMES, res):
-                out[name][todo] = arr
-            left = res[2] == NEEDS_REGION
-            reached[todo[left]] = res[0][left]
-            todo = todo[left]
-            margin *= 2.0
-            if margin > 1e6:
+                parts = min(self.threads, max(1, k // 16))
+                cuts = np.linspace(0, k, parts + 1).astype(int)
+                if parts > 1:
+                    with ThreadPoolExecutor(parts) as pool:
+                        list(pool.map(run, cuts[:-1], cuts[1:]))
+                else:
+                    run(0, k)
+                for name, arr in zip(NAMES, res):
+                    out[name][todo] = arr
+                skips[todo], stop[todo] = res[8], res[9]
+                if log_events:
+                    log[todo] = res[10]
+                left.append(todo[res[2] == NEEDS_REGION])
+            todo = np.concatenate(left)
+            # A ray that left goes on from its last segment's start, in a region around that
+            # segment reaching twice as far ahead as the last one did.
+            start[todo] = out["position"][todo]
+            heading[todo] = out["direction"][todo]
+            resume[todo] = 1
+            self.left += todo.size
+            groups = self._regions(todo, start, stop, heading, ahead, base)
+            ahead[todo] = np.minimum(2.0 * ahead[todo], AHEAD_MAX * base)
+            rounds += 1
+            if rounds > MAX_ROUNDS:
                 raise RuntimeError("rays left every region tried: the tracer lost them")
+        if log_events:
+            out["log"] = log
         return out
 
 
