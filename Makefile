@@ -18,7 +18,7 @@ STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $
 # Each scale has its own results folder: results/paper/ (committed), results/quick/ and results/small/.
 RESULTS = results/$(SCALE)
 
-.PHONY: install wheel-check demo test figures report experiment fibre-tips table1-paper-method convergence bench bench-generate bench-trace bench-exact bench-study bench-table1-paper bench-camera bench-accuracy tradeoff clean table1 camera design $(STUDIES)
+.PHONY: install wheel-check demo test figures report experiment fibre-tips table1-paper-method convergence bench bench-generate bench-trace bench-exact bench-study bench-table1-paper bench-camera bench-accuracy bench-estimates tradeoff clean table1 camera design $(STUDIES)
 
 install: $(STAMP)
 
@@ -85,7 +85,7 @@ demo: install
 test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-bench: bench-generate bench-trace bench-exact bench-study bench-camera bench-accuracy
+bench: bench-generate bench-trace bench-exact bench-study bench-camera bench-accuracy bench-estimates
 	$(BIN)/python benchmarks/bench_md.py --bench results/bench.json --out results/BENCH.md
 
 bench-generate: install
@@ -100,6 +100,10 @@ bench-trace: install
 ## `exact` on generated wood: µs/interface beside the voxel methods, 1.5 mm x 1000 rays cold, refinement.
 bench-exact: install
 	$(BIN)/python benchmarks/bench_exact.py --out results/bench.json
+
+## Every command's CPU, memory and disk estimate beside what it used -> results/estimates.md (about 6 min).
+bench-estimates: install
+	$(BIN)/python benchmarks/bench_estimates.py --paper --out results/bench.json
 
 bench-study: install
 	$(BIN)/python benchmarks/bench_study.py --out results/bench.json

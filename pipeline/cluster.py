@@ -79,7 +79,6 @@ def graph_client(command: str, *, workers: int | None = None, threads: int | Non
     """(client, local cluster or None) for a study's or the camera's graph."""
     import dask
     from distributed import Client, LocalCluster
-    from distributed.deploy.utils import nprocesses_nthreads
 
     if scheduler and scheduler_file:
         raise ParameterError("give either `--scheduler` or `--scheduler-file`, not both")
@@ -88,12 +87,7 @@ def graph_client(command: str, *, workers: int | None = None, threads: int | Non
     if scheduler_file:
         return connect(scheduler_file=scheduler_file), None
     cores = os.cpu_count() or 1
-    # A study's shards hold the GIL between kernel calls (chunk reads, the tracer's loop):
-    # Table 1 small ran 1.6x faster on 2 processes than on 1 process of 2 threads
-    # (results/BENCH.md), so a study starts dask's split of the cores into processes.
-    # The camera's row tasks share wood chunks in one process's memory and keep one worker.
-    default = nprocesses_nthreads(cores)[0] if command == "study" else 1
-    workers = workers if workers is not None else default
+    workers = local_workers(command, workers)
     threads = threads if threads is not None else max(1, cores // workers)
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC}
     # A worker near its memory limit is not paused: twray's tasks hold no data Dask could spill, so
@@ -102,6 +96,19 @@ def graph_client(command: str, *, workers: int | None = None, threads: int | Non
         cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True,
                                **({"memory_limit": memory} if memory is not None else {}))
     return Client(cluster), cluster
+
+
+def local_workers(command: str, workers: int | None) -> int:
+    """Worker processes of the local cluster ``command`` starts (``workers``: the user's number)."""
+    from distributed.deploy.utils import nprocesses_nthreads
+
+    if workers is not None:
+        return workers
+    # A study's shards hold the GIL between kernel calls (chunk reads, the tracer's loop):
+    # Table 1 small ran 1.6x faster on 2 processes than on 1 process of 2 threads
+    # (results/BENCH.md), so a study starts dask's split of the cores into processes.
+    # The camera's row tasks share wood chunks in one process's memory and keep one worker.
+    return nprocesses_nthreads(os.cpu_count() or 1)[0] if command == "study" else 1
 
 
 @contextlib.contextmanager

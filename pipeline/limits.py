@@ -13,6 +13,7 @@ needs.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import shutil
@@ -23,25 +24,40 @@ from .optics.settings import METHODS
 from .params import ParameterError
 
 CONFIRM_ENV = "TWRAY_CONFIRM_CPU_HOURS"
+RECORD_ENV = "TWRAY_ESTIMATES"  # a file each checked estimate is appended to, as one JSON line (measurements)
 CONFIRM_DEFAULT_H = 2.0
-GENERATE_VOXELS_PER_CPU_S = 15e6  # birch 40-140 M/s, balsa 16 M/s (results/bench.json)
-DISK_BYTES_PER_VOXEL = 0.01  # zstd chunks of birch: 0.0055 B a voxel
+# Measured by benchmarks/bench_estimates.py (results/estimates.md) on 2-core machines; tests/test_limits.py
+# holds a few cases within 1.5x of what the commands use.
+STARTUP_CPU_S = 2.5  # a process importing twray and loading its compiled kernels (the command, each worker)
+IMPORT_CPU_S = 2.0  # a command that reads or writes volumes only (export-tiff, a lazy generate)
+BASE_MEMORY = 300e6  # a process with twray's libraries and kernels loaded (220-320 MB measured)
+# Voxels generated per CPU-second: fibre ellipses (birch 40-64 M/s), rotated plies (34 M/s), balsa's polygons (14 M/s).
+GENERATE_VOXELS_PER_CPU_S = {"ellipse": 40e6, "plies": 30e6, "polygon": 12e6}
+# zstd chunks and their pyramid at 0.5 µm voxels (birch 0.011-0.013 B, balsa 0.014 B a voxel); finer voxels
+# compress better, about as sqrt(voxel); rotated plies 2.3x worse.
+DISK_BYTES_PER_VOXEL = 0.012
+PLY_DISK_FACTOR = 2.5
+TIFF_CPU_S_PER_BYTE = 5e-9  # export-tiff: writing uncompressed slices
 MEMORY_BYTES_PER_WOOD_VOXEL = 0.2  # chunks the tracer keeps bit-packed, and the chunk cache
+CAMERA_BYTES_PER_WOOD_VOXEL = 0.5  # the camera's worker keeps the chunks its rows read (0.35-1 B measured)
 RAY_BYTES = 512  # a ray's state, result and beam entry in one trace
 DATASET_RAY_BYTES = 24  # theta_r, theta_l, interfaces and status of a ray in a result Dataset
-BASE_MEMORY = 1 << 30  # the interpreter, compiled kernels and the chunk cache
 INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
-                   # exact: no wood generated; ~130 µs an interface, plus REGION_CPU_S a trace (measured
-                   # by tests/test_limits.py, within 1.5x; 2 mm at ΔRI < 0 takes up to 2x: regions widen)
-                   "exact": 1.3e-4}
-REGION_CPU_S = 0.9  # exact: building the region of generated wood around a beam, once a trace (a shard)
+                   # exact: no wood generated; ~200 µs an interface (1000 rays x 1.5 mm: 195 µs on 2
+                   # threads; fewer rays find fewer control values memoised), plus its regions
+                   "exact": 2.0e-4}
+REGION_MEMORY_FACTOR = 4.0  # exact: a worker's growth with its regions (their tiles, caches and arenas)
+REGION_CPU_S_PER_BYTE = 5e-8  # exact: building a trace's regions (distortion tiles: 1.3 s for 1 mm of birch)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
 # What a study writes besides its wood (measured by tests/test_limits.py): per shard of rays an .npz
 # (headers and its record, then 120 B a ray), per wood and value a summary and per value a pool
 # (JSON, under 1 kB each), per study a Dataset (75 kB of metadata and numbers, then per ray
 # DATASET_RAY_BYTES; Table 1's compress to 17 B a ray).
 SHARD_BYTES, SHARD_RAY_BYTES, ENTRY_BYTES, DATASET_BYTES = 7e3, 120.0, 800.0, 75e3
-SPREAD = 2.0  # chunks generated around the beam's column by spreading rays, as a factor
+# ... and what its reductions cost: per scene (value and wood) its summary, its share of the value's
+# pool and the tasks' overhead; per study its Dataset (xarray, Zarr).
+SCENE_CPU_S, DATASET_CPU_S = 0.6, 2.0
+SPREAD = 1.25  # chunks generated around the beam's column by spreading rays, as a factor
 CHUNK = 64  # voxels along a chunk edge in the study cache
 SHOW_ESTIMATE_S = 60.0  # commands estimated above this many CPU-seconds print their estimate first
 
@@ -101,7 +117,9 @@ def confirm_hours() -> float:
 
 
 def check(est: Estimate, *, what: str, yes: bool, disk_path=None, fit: str = "") -> None:
-    """Refuse ``what`` if ``est`` cannot fit this machine, or needs ``--yes`` and has not got it."""
+    """Refuse ``what`` if ``est`` cannot fit this machine, or needs ``--yes`` and has not got it.
+    Every estimate checked is appended to the file ``TWRAY_ESTIMATES`` names, if any."""
+    _record(est, what)
     hint = f"; {fit}" if fit else ""
     memory = machine_memory()
     if not est.memory <= 0.8 * memory:
@@ -113,6 +131,39 @@ def check(est: Estimate, *, what: str, yes: bool, disk_path=None, fit: str = "")
     if not yes and not est.cpu_s <= confirm_hours() * 3600:
         raise ParameterError(f"{what} needs {est.text()}, above {CONFIRM_ENV}={confirm_hours():g} CPU-hours: "
                              f"add --yes (with make: YES=1) to run it{hint}")
+
+
+def _record(est: Estimate, what: str) -> None:
+    path = os.environ.get(RECORD_ENV)
+    if path:
+        line = json.dumps({"what": what, **dataclasses.asdict(est)})
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(line + "\n")
+
+
+def _kind(wood) -> str:
+    if wood is not None and wood.cell_shape == "polygon":
+        return "polygon"
+    if wood is not None and wood.laminate and any(a % 180 != 0 for a in wood.laminate):
+        return "plies"
+    return "ellipse"
+
+
+def generate_cpu_s(voxels: float, wood=None) -> float:
+    """CPU-seconds to generate ``voxels`` of ``wood`` (WoodParams; None: birch-like)."""
+    return voxels / GENERATE_VOXELS_PER_CPU_S[_kind(wood)]
+
+
+def stored_bytes(voxels: float, voxel_um: float, wood=None) -> float:
+    """Disk that ``voxels`` of ``wood`` take as compressed chunks with their pyramid."""
+    factor = PLY_DISK_FACTOR if _kind(wood) == "plies" else 1.0
+    return voxels * DISK_BYTES_PER_VOXEL * factor * math.sqrt(voxel_um / 0.5)
+
+
+def startup(processes: int, *, kernels: bool = True) -> Estimate:
+    """What ``processes`` processes running twray cost before any work (the command and its workers;
+    ``kernels``: they load the generator's and tracers' compiled kernels)."""
+    return Estimate((STARTUP_CPU_S if kernels else IMPORT_CPU_S) * processes, BASE_MEMORY, 0.0)
 
 
 def wood_voxels(beam_um: float, thickness_um: float, voxel_um: float) -> float:
@@ -134,17 +185,20 @@ def surface_region_bytes(beam_um: float, thickness_um: float, pitch_um: float) -
 
 
 def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: float, pitch_um: float,
-                   method: str, wood: bool = True, store: bool = False, generated: bool = True) -> Estimate:
-    """One beam traced in one process (``wood``: generated as rays reach it; ``store``: kept on disk;
-    ``generated``: the model's wood, not a reference lattice)."""
+                   method: str, wood: bool = True, store: bool = False, generated: bool = True,
+                   params=None) -> Estimate:
+    """One beam traced in one process, its start not counted (``wood``: generated as rays reach it;
+    ``store``: kept on disk; ``generated``: the model's wood, not a reference lattice; ``params``:
+    the wood's WoodParams, for its generation rate and compression)."""
     interfaces = rays * INTERFACES_PER_PITCH * thickness_um / pitch_um
     voxels = wood_voxels(beam_um, thickness_um, voxel_um) if wood and METHODS[method] == "voxels" else 0.0
-    cpu = interfaces * INTERFACE_CPU_S.get(method, INTERFACE_CPU_S["accurate"]) + voxels / GENERATE_VOXELS_PER_CPU_S
+    cpu = interfaces * INTERFACE_CPU_S.get(method, INTERFACE_CPU_S["accurate"]) + generate_cpu_s(voxels, params)
     memory = BASE_MEMORY + rays * RAY_BYTES + (0 if store else voxels * MEMORY_BYTES_PER_WOOD_VOXEL)
     if generated and METHODS.get(method) == "surfaces":
-        memory += surface_region_bytes(beam_um, thickness_um, pitch_um)
-        cpu += REGION_CPU_S
-    return Estimate(cpu, memory, voxels * DISK_BYTES_PER_VOXEL if store else 0.0)
+        region = surface_region_bytes(beam_um, thickness_um, pitch_um)
+        memory += REGION_MEMORY_FACTOR * region
+        cpu += region * REGION_CPU_S_PER_BYTE
+    return Estimate(cpu, memory, stored_bytes(voxels, voxel_um, params) if store else 0.0)
 
 
 def study_estimate(scenes, *, shard_rays: int) -> Estimate:
@@ -158,23 +212,43 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
         voxel = s.trace_voxel_um
         if s.settings.medium_kind == "voxels" and s.wood is not None:  # surfaces and lattices store no wood
             key = (repr(s.wood), s.seed, voxel)
-            woods[key] = max(woods.get(key, 0.0), wood_voxels(s.beam_um, s.thickness_um, voxel))
+            woods[key] = (max(woods.get(key, (0.0,))[0], wood_voxels(s.beam_um, s.thickness_um, voxel)), voxel, s.wood)
         shard = trace_estimate(rays=min(s.rays, shard_rays), beam_um=s.beam_um, thickness_um=s.thickness_um,
                                voxel_um=voxel, pitch_um=s.pitch_um, method=s.settings.method,
-                               wood=False, store=True, generated=s.wood is not None)
+                               wood=False, store=True, generated=s.wood is not None, params=s.wood)
         n_shards = math.ceil(s.rays / shard_rays)
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))
         written = n_shards * SHARD_BYTES + s.rays * (SHARD_RAY_BYTES + DATASET_RAY_BYTES) + 2 * ENTRY_BYTES
-        est = est + Estimate(shard.cpu_s * n_shards, max(shard.memory, reduce), written)
-    voxels = sum(woods.values())
-    return est + Estimate(voxels / GENERATE_VOXELS_PER_CPU_S, 0.0,
-                          voxels * DISK_BYTES_PER_VOXEL + (DATASET_BYTES if scenes else 0.0))
+        est = est + Estimate(shard.cpu_s * n_shards + SCENE_CPU_S, max(shard.memory, reduce), written)
+    return est + _woods(woods) + (Estimate(DATASET_CPU_S, 0.0, DATASET_BYTES) if scenes else Estimate())
+
+
+def _woods(woods: dict) -> Estimate:
+    """Generating and storing each wood of ``woods`` {key: (voxels, voxel_um, WoodParams)} once."""
+    return Estimate(sum(generate_cpu_s(n, p) for n, _, p in woods.values()), 0.0,
+                    sum(stored_bytes(n, v, p) for n, v, p in woods.values()))
+
+
+def camera_footprint_um(camera, sheet) -> tuple[float, float]:
+    """(along R, along L) [µm] of the sheet the camera's rays can reach: the cone from the aperture to
+    the object field at both faces, widened by a twentieth of the thickness (scattered rays) and a
+    chunk on each side, at most the sheet (Figure 5's sheets: 0.7-1.4x what the rays reached)."""
+    p_mm = camera.pitch_um * 1e-3 / camera.magnification
+    half = [0.5 * n * p_mm for n in camera.pixels[::-1]]  # (x, y) of the object field [mm]
+    u = camera.objective_mm
+    reach = []
+    for h in half:
+        faces = (u - (sheet.gap_um + sheet.thickness_um) * 1e-3, u - sheet.gap_um * 1e-3)
+        far = max(0.5 * camera.aperture_mm * (1 - z / u) + h * z / u for z in faces)
+        reach.append(2e3 * far + 0.1 * sheet.thickness_um + 2 * CHUNK * sheet.voxel_um)
+    along_r, along_l = reach if sheet.r_axis == "x" else reach[::-1]
+    return min(along_r, sheet.width_um), min(along_l, sheet.length_um)
 
 
 def camera_estimate(images) -> Estimate:
-    """Images through a sheet: every pixel's aperture samples traced, the sheet's wood (at
-    most all of it) generated once and kept on disk."""
+    """Images through a sheet, their start not counted: every pixel's aperture samples traced, the
+    part of the sheet's wood the rays reach generated once and kept on disk."""
     from .optics.settings import traced_voxel_um
 
     est = Estimate()
@@ -186,11 +260,13 @@ def camera_estimate(images) -> Estimate:
             est = est + Estimate(rays * 1e-6, BASE_MEMORY, 0.0)
             continue
         voxel = traced_voxel_um(sh.voxel_um, cfg.settings)
+        held = 0.0
         if cfg.settings.medium_kind == "voxels":  # a surface method generates no wood
             key = (repr(sh.wood), sh.seed, voxel)
-            woods[key] = max(woods.get(key, 0.0), sh.width_um * sh.length_um * sh.thickness_um / voxel ** 3)
+            r_um, l_um = camera_footprint_um(cam, sh)
+            held = r_um * l_um * sh.thickness_um / voxel ** 3
+            woods[key] = (max(woods.get(key, (0.0,))[0], held), voxel, sh.wood)
         cost = INTERFACE_CPU_S.get(cfg.settings.method, INTERFACE_CPU_S["accurate"])
         est = est + Estimate(rays * INTERFACES_PER_PITCH * sh.thickness_um / sh.wood.fibre_diameter_um * cost,
-                             BASE_MEMORY, 0.0)
-    voxels = sum(woods.values())
-    return est + Estimate(voxels / GENERATE_VOXELS_PER_CPU_S, 0.0, voxels * DISK_BYTES_PER_VOXEL)
+                             BASE_MEMORY + held * CAMERA_BYTES_PER_WOOD_VOXEL, 0.0)
+    return est + _woods(woods)

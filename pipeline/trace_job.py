@@ -104,7 +104,8 @@ def medium_of(job: TraceJob):
     return medium, centre, limits.trace_estimate(rays=rays, beam_um=job.beam_um, thickness_um=thickness_um,
                                                  voxel_um=voxel, pitch_um=pitch, method=job.settings.method,
                                                  wood=not job.volume,
-                                                 generated=not job.volume and job.reference is None)
+                                                 generated=not job.volume and job.reference is None,
+                                                 params=job.wood)
 
 
 def run(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:

@@ -77,6 +77,16 @@ def _cluster(args, command: str):
                    scheduler_file=args.scheduler_file)
 
 
+def _started(args, command: str) -> "limits.Estimate":
+    """The command and the local workers it starts (none with a running scheduler)."""
+    from ..cluster import local_workers
+
+    if args.scheduler or args.scheduler_file:
+        return limits.startup(1)
+    return limits.startup(1 + local_workers(command, None if args.workers is None else
+                                            integer(args.workers, "workers", 1)))
+
+
 def cmd_study(args) -> int:
     from ..study.dataset import write_dataset
     from ..study.plan import describe_plan, plan_study, ray_sampling, report_table, summary_rows
@@ -101,13 +111,14 @@ def cmd_study(args) -> int:
     # What could never fit is refused before planning (which lists the wood's chunks).
     scenes = [sc for st in studies for sc in st.all_scenes()]
     fit = "use fewer rays, a narrower beam, larger voxels or a thinner sample"
-    est = limits.study_estimate(scenes, shard_rays=shard_rays)
+    started = _started(args, "study")
+    est = started + limits.study_estimate(scenes, shard_rays=shard_rays)
     limits.check(est, what="`study`", yes=True, disk_path=args.cache, fit=fit)
     t0 = time.perf_counter()
     plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
     todo = [plan.study.realisation(summ.scene_index, summ.realisation)
             for plan in plans for summ in plan.summaries if not summ.cached]
-    est = limits.study_estimate(todo, shard_rays=shard_rays)
+    est = started + limits.study_estimate(todo, shard_rays=shard_rays)
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
         print(f"twray study: estimate for the {len(todo)} value{'' if len(todo) == 1 else 's'} to compute: "
               f"{est.text()}", file=sys.stderr)
@@ -168,11 +179,12 @@ def cmd_camera(args) -> int:
     memory_limit(args.memory_limit)
     study = load_camera(args.file, scale=args.scale)
     fit = "use fewer pixels or samples, a smaller or thinner sheet, or larger voxels"
-    limits.check(limits.camera_estimate(study.images), what="`camera`", yes=True, disk_path=args.cache, fit=fit)
+    started = _started(args, "camera")
+    limits.check(started + limits.camera_estimate(study.images), what="`camera`", yes=True, disk_path=args.cache, fit=fit)
     t0 = time.perf_counter()
     entries = plan_camera(study, args.cache)
     todo = [e.config for e in entries if not e.cached]
-    est = limits.camera_estimate(todo)
+    est = started + limits.camera_estimate(todo)
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
         print(f"twray camera: estimate for the {len(todo)} image{'' if len(todo) == 1 else 's'} to render "
               f"(the sheet's wood counted whole): {est.text()}", file=sys.stderr)

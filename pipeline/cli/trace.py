@@ -125,7 +125,7 @@ def cmd_trace(args) -> int:
                    seed=optics.seed, volume=args.volume, wood=wood, reference=ref, thickness_um=thickness_um,
                    beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target)
     medium, centre, est = medium_of(job)
-    limits.check(est, what=f"`trace` of {rays if target is None else target.max_rays} rays", yes=args.yes,
+    limits.check(limits.startup(1) + est, what=f"`trace` of {rays if target is None else target.max_rays} rays", yes=args.yes,
                  fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
                      "or a thinner sample")
     result, summary = run(job, medium, centre, progress=progress_mode(args.quiet))

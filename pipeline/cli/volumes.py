@@ -40,6 +40,13 @@ def add_generate(sub):
     p.set_defaults(func=cmd_generate)
 
 
+def _generate_estimate(voxels: float, voxel_um: float, params, *, workers) -> limits.Estimate:
+    """Generating ``voxels`` into a store: the command (and its workers) started, the voxels
+    generated, their chunks and pyramid written."""
+    return limits.startup(1 + (workers or 0)) + limits.Estimate(
+        limits.generate_cpu_s(voxels, params), 0.0, limits.stored_bytes(voxels, voxel_um, params))
+
+
 def _materialise(args) -> int:
     """Generate in place the chunks a lazy twray volume does not hold yet."""
     from ..microstructure.volume import WoodVolume
@@ -51,11 +58,10 @@ def _materialise(args) -> int:
     vol = WoodVolume.open(out)
     todo = len(vol.all_chunks()) - len(vol.generated_chunks())
     nvox = todo / max(1, len(vol.all_chunks())) * math.prod(vol.shape)
-    est = limits.Estimate(nvox / limits.GENERATE_VOXELS_PER_CPU_S, limits.BASE_MEMORY,
-                          nvox * limits.DISK_BYTES_PER_VOXEL)
+    workers = integer(args.workers, "workers", 1) if args.workers is not None else None
+    est = _generate_estimate(nvox, vol.grid.voxel_um, vol.params, workers=workers)
     limits.check(est, what=f"`generate --materialise` of {todo} chunks", yes=args.yes, disk_path=out,
                  fit="keep the store lazy: twray generates chunks as they are read")
-    workers = integer(args.workers, "workers", 1) if args.workers is not None else None
     t0 = time.perf_counter()
     with generate_client(workers, args.scheduler) as client:
         n = vol.generate(scheduler=client, progress=progress_mode(args.quiet))
@@ -86,10 +92,9 @@ def cmd_generate(args) -> int:
 
     sweep_leftovers(out.parent)  # what generate runs interrupted before this one left
     nvox = math.prod(grid.shape)
-    est = limits.Estimate(0.0, limits.BASE_MEMORY, 4096.0)
+    est = limits.startup(1, kernels=False) + limits.Estimate(0.0, 0.0, 4096.0)
     if not args.lazy:
-        est = limits.Estimate(nvox / limits.GENERATE_VOXELS_PER_CPU_S, limits.BASE_MEMORY,
-                              nvox * limits.DISK_BYTES_PER_VOXEL)
+        est = _generate_estimate(nvox, grid.voxel_um, params, workers=workers)
     limits.check(est, what=f"`generate` of {nvox:.3g} voxels", yes=args.yes, disk_path=out.parent,
                  fit="use --lazy to generate chunks only when they are read, or a smaller --size-um")
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
@@ -140,9 +145,12 @@ def cmd_export_tiff(args) -> int:
     vol = WoodVolume.open(args.volume)
     nvox = math.prod(vol.shape)
     todo = 1.0 - len(vol.generated_chunks()) / max(1, math.prod(vol.chunk_grid))
-    # Uncompressed 8-bit slices, and the chunks a lazy volume has not generated yet.
-    est = limits.Estimate(todo * nvox / limits.GENERATE_VOXELS_PER_CPU_S, limits.BASE_MEMORY,
-                          nvox + todo * nvox * limits.DISK_BYTES_PER_VOXEL)
+    # Uncompressed 8-bit slices (one slab of a chunk's depth in memory at a time), and the chunks
+    # a lazy volume has not generated yet.
+    est = limits.startup(1, kernels=False) + limits.Estimate(
+        limits.generate_cpu_s(todo * nvox, vol.params) + nvox * limits.TIFF_CPU_S_PER_BYTE,
+        limits.BASE_MEMORY + vol.shape[0] * vol.shape[1] * vol.chunks[2],
+        nvox + limits.stored_bytes(todo * nvox, vol.grid.voxel_um, vol.params))
     limits.check(est, what=f"`export-tiff` of {nvox:.3g} voxels", yes=args.yes, disk_path=args.out,
                  fit="export a smaller volume (generate one with a smaller --size-um)")
     paths = write_tiff_stack(vol, args.out)

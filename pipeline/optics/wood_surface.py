@@ -50,10 +50,15 @@ class WoodSurface:
         self.regions = 0  # region contexts built (each widening counts)
         self.threads = max(1, int(threads))  # slices of a beam traced side by side
 
-    def _context(self, pos: np.ndarray, margin: float) -> tuple:
+    @staticmethod
+    def _bounds(pos: np.ndarray, margin: float) -> tuple:
+        """(R range, L range, None: the whole thickness) of the box around ``pos`` widened by ``margin``."""
         r = (float(np.min(pos[:, 0])) - margin, float(np.max(pos[:, 0])) + margin)
         l = (float(np.min(pos[:, 2])) - margin, float(np.max(pos[:, 2])) + margin)
-        return self._box(r, l)
+        return r, l, None
+
+    def _context(self, pos: np.ndarray, margin: float) -> tuple:
+        return self._box(*self._bounds(pos, margin))
 
     def _box(self, r: tuple, l: tuple, t: tuple | None = None) -> tuple:
         self.regions += 1
@@ -81,7 +86,7 @@ class WoodSurface:
         for g in range(which.max() + 1):
             m = which == g
             r, t, l = ((float(lo[m].min()), float(hi[m].max())) for lo, hi in box)
-            groups.append((todo[m], self._box(r, l, (max(t[0], 0.0), min(t[1], self.thickness_um)))))
+            groups.append((todo[m], (r, l, (max(t[0], 0.0), min(t[1], self.thickness_um)))))
         return groups
 
     def entry_phase(self, origins_um: np.ndarray) -> np.ndarray:
@@ -108,11 +113,12 @@ class WoodSurface:
         stop = np.empty((n, 3))
         start, heading = pos0.copy(), dirs0.copy()  # where each ray (re)starts: its last segment
         ahead = np.full(n, base)  # how far a ray's next region reaches along its heading
-        groups = [(np.arange(n), self._context(pos0, base))]
+        groups = [(np.arange(n), self._bounds(pos0, base))]
         rounds = 0
         while groups:
             left = []
-            for todo, ctx in groups:
+            for todo, box in groups:  # each region built when its rays are traced, then let go
+                ctx = self._box(*box)
                 k = todo.size
                 res = [out[name][todo] for name in NAMES] + [skips[todo], stop[todo], log[todo] if log_events else log]
 
