@@ -252,6 +252,24 @@ def test_figure_5_file_holds_the_papers_three_configurations_and_a_control():
     assert [c.sheet.ri_wall for c in study.images] == [1.54, 1.54, 1.54, 1.53]
 
 
+def test_method_replaces_the_files_trace_method_and_a_bad_one_is_one_line(tmp_path, capsys):
+    """`--method` traces every image's sheet with another method (its images are other cache
+    entries); a method that is not one is refused before anything is made."""
+    for method in ("exact", "accurate"):
+        study = load_camera("studies/camera/figure5.yaml", method=method)
+        assert {c.settings.method for c in study.images} == {method}
+        assert all(c.settings.exit == "air" for c in study.images)
+    assert {c.settings.method for c in load_camera("studies/camera/figure5.yaml").images} == {"fast"}
+    keys = {m: [e.key for e in plan_camera(load_camera("studies/camera/figure5.yaml", method=m), tmp_path / "c")]
+            for m in ("fast", "exact")}
+    assert not set(keys["fast"]) & set(keys["exact"])
+    assert main(["camera", "studies/camera/figure5.yaml", "--method", "voxels", "--cache", str(tmp_path / "c"),
+                 "--results", str(tmp_path / "r")]) == 2
+    msg = capsys.readouterr().err.strip()
+    assert msg.count("\n") == 0 and "`method` must be one of" in msg and "'voxels'" in msg
+    assert not (tmp_path / "r").exists()
+
+
 def test_camera_command_writes_results_and_a_rerun_renders_nothing(tmp_path, capsys):
     path = tmp_path / "cam.yaml"
     path.write_text(CAMERA_FILE)

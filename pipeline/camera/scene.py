@@ -77,8 +77,9 @@ class CameraStudy:
     images: tuple[ImageConfig, ...]
 
 
-def load_camera(path, *, scale: str = "paper") -> CameraStudy:
-    """Read and validate a camera file; expand it into images at ``scale``."""
+def load_camera(path, *, scale: str = "paper", method: str | None = None) -> CameraStudy:
+    """Read and validate a camera file; expand it into images at ``scale``, traced with ``method``
+    (``--method``) instead of the file's ``trace.method`` when given."""
     path = Path(path)
     if scale not in SCALES:
         raise ParameterError(f"`scale` must be one of {', '.join(SCALES)}, got scale={scale!r}")
@@ -133,11 +134,14 @@ def load_camera(path, *, scale: str = "paper") -> CameraStudy:
     samples = max(1, int(round(samples * f["samples"])))
 
     trace = mapping(data.get("trace"), ("trace",), _TRACE)
-    method = trace.get("method", "exact")
-    try:
-        check_method(method, "trace.method")
-    except ParameterError as exc:
-        fail(("trace", "method"), str(exc))
+    if method is not None:  # --method: instead of the file's
+        check_method(method)
+    else:
+        method = trace.get("method", "exact")
+        try:
+            check_method(method, "trace.method")
+        except ParameterError as exc:
+            fail(("trace", "method"), str(exc))
     fresnel = trace.get("fresnel", False)
     if not isinstance(fresnel, bool):
         fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {fresnel!r}")

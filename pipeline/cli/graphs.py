@@ -161,6 +161,8 @@ def add_camera(sub):
     add_cluster_options(p)
     p.add_argument("--results", default="results/camera",
                    help="where the Dataset and PNGs go (default results/camera)")
+    p.add_argument("--method", default=None, help="trace the sheet with this method instead of the file's "
+                                                   "trace.method (exact, fast, accurate, paper)")
     p.add_argument("--rows-per-task", default="3", help="sensor rows per rendering task (default 3)")
     p.add_argument("--dry-run", action="store_true", help="list each image as cached or to render")
     p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
@@ -177,7 +179,7 @@ def cmd_camera(args) -> int:
         integer(args.workers, "workers", 1)
     _absolute_paths(args)
     memory_limit(args.memory_limit)
-    study = load_camera(args.file, scale=args.scale)
+    study = load_camera(args.file, scale=args.scale, method=args.method)
     fit = "use fewer pixels or samples, a smaller or thinner sheet, or larger voxels"
     started = _started(args, "camera")
     limits.check(started + limits.camera_estimate(study.images), what="`camera`", yes=True, disk_path=args.cache, fit=fit)
@@ -187,7 +189,7 @@ def cmd_camera(args) -> int:
     est = started + limits.camera_estimate(todo)
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
         print(f"twray camera: estimate for the {len(todo)} image{'' if len(todo) == 1 else 's'} to render "
-              f"(the sheet's wood counted whole): {est.text()}", file=sys.stderr)
+              f"(the part of the sheet its rays reach): {est.text()}", file=sys.stderr)
     if args.dry_run:
         for e in entries:
             print(f"{study.name} {e.config.name}: {'cached' if e.cached else 'to render'} ({e.key[:12]})")
