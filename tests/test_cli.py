@@ -386,7 +386,7 @@ def test_a_lazy_volume_traces_as_its_generated_twin_and_an_empty_one_is_refused(
 
 
 def test_export_tiff_of_a_volume_larger_than_the_disk_is_refused_before_writing(tmp_path, capsys):
-    code, _, err = run(capsys, "generate", "--size-um", "500000,1500,1500", "--lazy", "--out",
+    code, _, err = run(capsys, "generate", "--size-um", "1500,1500,500000", "--lazy", "--out",
                        str(tmp_path / "huge.zarr"))  # 9e12 voxels: 9 TB of TIFF
     assert code == 0, err
     code, _, err = run(capsys, "export-tiff", str(tmp_path / "huge.zarr"), "--out", str(tmp_path / "tif"))
