@@ -5,9 +5,9 @@ The phase at a point is the generator's, bit for bit
 (:mod:`pipeline.microstructure.surface`); the tracer steps by proven
 clearances and bisects each crossing (:mod:`pipeline.optics._surface_march`).
 What a region of wood needs (distortion tiles, vessels) is built for the box
-around the entry points; a ray that leaves it is traced again, from its start,
-in a box around its path so far and wider, so the result does not depend on
-the box.
+around the entry points; a ray that leaves it goes on from the start of its
+last straight segment, with the state it had there, in a small region ahead
+of it, so the result does not depend on the regions.
 """
 
 from __future__ import annotations
