@@ -35,15 +35,17 @@ CONFIRM_DEFAULT_H = 2.0
 STARTUP_CPU_S = 2.5  # a process importing twray and loading its compiled kernels (the command, each worker)
 IMPORT_CPU_S = 2.0  # a command that reads or writes volumes only (export-tiff, a lazy generate)
 BASE_MEMORY = 300e6  # a process with twray's libraries and kernels loaded (220-320 MB measured)
-# Voxels generated per CPU-second: fibre ellipses (birch 40-64 M/s), rotated plies (34 M/s), balsa's polygons (14 M/s).
-GENERATE_VOXELS_PER_CPU_S = {"ellipse": 40e6, "plies": 30e6, "polygon": 12e6}
+# Voxels generated per CPU-second: fibre ellipses (birch 43-64 M/s), rotated plies (34 M/s), balsa's polygons (14 M/s).
+GENERATE_VOXELS_PER_CPU_S = {"ellipse": 45e6, "plies": 30e6, "polygon": 12e6}
 # zstd chunks and their pyramid at 0.5 µm voxels (birch 0.011-0.013 B, balsa 0.014 B a voxel); finer voxels
 # compress better, about as sqrt(voxel); rotated plies 2.3x worse.
 DISK_BYTES_PER_VOXEL = 0.012
 PLY_DISK_FACTOR = 2.5
 TIFF_CPU_S_PER_BYTE = 5e-9  # export-tiff: writing uncompressed slices
 MEMORY_BYTES_PER_WOOD_VOXEL = 0.2  # chunks the tracer keeps bit-packed, and the chunk cache
-CAMERA_BYTES_PER_WOOD_VOXEL = 0.5  # the camera's worker keeps the chunks its rows read (0.35-1 B measured)
+# The camera's worker: its render's working set, and per voxel of the sheet its rays reach (fitted to
+# Figure 5 small and quick: 0.68-0.79 GB and 1.24 GB).
+CAMERA_MEMORY, CAMERA_BYTES_PER_WOOD_VOXEL = 330e6, 0.27
 RAY_BYTES = 512  # a ray's state, result and beam entry in one trace
 DATASET_RAY_BYTES = 24  # theta_r, theta_l, interfaces and status of a ray in a result Dataset
 INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
@@ -240,8 +242,8 @@ def _woods(woods: dict) -> Estimate:
 
 def camera_footprint_um(camera, sheet) -> tuple[float, float]:
     """(along R, along L) [µm] of the sheet the camera's rays can reach: the cone from the aperture to
-    the object field at both faces, widened by a twentieth of the thickness (scattered rays) and a
-    chunk on each side, at most the sheet (Figure 5's sheets: 0.7-1.4x what the rays reached)."""
+    the object field at both faces, widened by 1 % of the thickness (scattered rays) and a chunk on
+    each side, at most the sheet (Figure 5's sheets: 1.2-1.3x the chunks the rays reached)."""
     p_mm = camera.pitch_um * 1e-3 / camera.magnification
     half = [0.5 * n * p_mm for n in camera.pixels[::-1]]  # (x, y) of the object field [mm]
     u = camera.objective_mm
@@ -249,7 +251,7 @@ def camera_footprint_um(camera, sheet) -> tuple[float, float]:
     for h in half:
         faces = (u - (sheet.gap_um + sheet.thickness_um) * 1e-3, u - sheet.gap_um * 1e-3)
         far = max(0.5 * camera.aperture_mm * (1 - z / u) + h * z / u for z in faces)
-        reach.append(2e3 * far + 0.1 * sheet.thickness_um + 2 * CHUNK * sheet.voxel_um)
+        reach.append(2e3 * far + 0.02 * sheet.thickness_um + 2 * CHUNK * sheet.voxel_um)
     along_r, along_l = reach if sheet.r_axis == "x" else reach[::-1]
     return min(along_r, sheet.width_um), min(along_l, sheet.length_um)
 
@@ -276,5 +278,5 @@ def camera_estimate(images) -> Estimate:
             woods[key] = (max(woods.get(key, (0.0,))[0], held), voxel, sh.wood)
         cost = INTERFACE_CPU_S.get(cfg.settings.method, INTERFACE_CPU_S["accurate"])
         est = est + Estimate(rays * INTERFACES_PER_PITCH * sh.thickness_um / sh.wood.fibre_diameter_um * cost,
-                             BASE_MEMORY + held * CAMERA_BYTES_PER_WOOD_VOXEL, 0.0)
+                             BASE_MEMORY + CAMERA_MEMORY + held * CAMERA_BYTES_PER_WOOD_VOXEL, 0.0)
     return est + _woods(woods)
