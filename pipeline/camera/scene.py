@@ -32,7 +32,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..optics.settings import INDEX_RANGE, TraceSettings, check_method, settings_for
+from ..optics.settings import INDEX_RANGE, TraceSettings, chosen_method, settings_for
 from ..params import (ParameterError, WOOD_FIELDS, WoodParams, check_voxel, coerce_field, load_preset,
                       read_yaml_file, validate, yaml_locator)
 from .lens import Camera, Sheet
@@ -134,14 +134,7 @@ def load_camera(path, *, scale: str = "paper", method: str | None = None) -> Cam
     samples = max(1, int(round(samples * f["samples"])))
 
     trace = mapping(data.get("trace"), ("trace",), _TRACE)
-    if method is not None:  # --method: instead of the file's
-        check_method(method)
-    else:
-        method = trace.get("method", "exact")
-        try:
-            check_method(method, "trace.method")
-        except ParameterError as exc:
-            fail(("trace", "method"), str(exc))
+    method = chosen_method(trace, method, fail)
     fresnel = trace.get("fresnel", False)
     if not isinstance(fresnel, bool):
         fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {fresnel!r}")

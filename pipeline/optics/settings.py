@@ -19,6 +19,19 @@ EXITS = ("internal", "air")
 INDEX_RANGE = (1.0, 3.0)  # refractive indices of wall and polymer
 
 
+def chosen_method(trace: dict, override, fail) -> str:
+    """The method of a study or camera file: ``override`` (``--method``) if given, else its
+    ``trace.method`` (default exact); a bad one is refused by name, or through ``fail(keys,
+    message)`` (which raises with the file's line)."""
+    if override is not None:
+        return check_method(override)
+    try:
+        return check_method(trace.get("method", "exact"), "trace.method")
+    except ParameterError as exc:
+        fail(("trace", "method"), str(exc))
+        raise
+
+
 def check_method(method, field: str = "method", *, kind: str | None = None) -> str:
     """``method`` if it names a method (of medium ``kind``, when given); a ParameterError naming
     ``field`` otherwise."""

@@ -48,7 +48,7 @@ from typing import Any
 
 from ..analysis import Target
 from ..optics.references import REFERENCE_FIELDS, REFERENCES, Reference, reference
-from ..optics.settings import (Optics, TraceSettings, check_method, settings_for, traced_voxel_um,
+from ..optics.settings import (Optics, TraceSettings, chosen_method, settings_for, traced_voxel_um,
                                wall_index)
 from ..params import (ParameterError, WOOD_FIELDS, WoodParams, check_voxel, coerce_field, load_preset,
                       read_yaml_file, validate, yaml_locator)
@@ -269,14 +269,7 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
     for k in trace:
         if k not in _TRACE:
             fail(("trace", k), f"unknown key `trace.{k}` (known: {', '.join(sorted(_TRACE))})")
-    if method is not None:
-        check_method(method)
-    else:
-        method = trace.get("method", "exact")
-        try:
-            check_method(method, "trace.method")
-        except ParameterError as exc:
-            fail(("trace", "method"), str(exc))
+    method = chosen_method(trace, method, fail)
     if "fresnel" in trace and not isinstance(trace["fresnel"], bool):
         fail(("trace", "fresnel"), f"`trace.fresnel` must be true or false, got {trace['fresnel']!r}")
     changes = {}
