@@ -197,9 +197,12 @@ def _figure(study: CameraStudy, images: list, path: Path) -> None:
                  f"{cfg.sheet.thickness_um / 1000:g} mm, ΔRI {cfg.sheet.ri_wall - cfg.sheet.ri_polymer:.3g}, "
                  f"gap {cfg.sheet.gap_um:g} µm")
         axes[1, k].set_title(f"f {cfg.camera.focal_mm:g} mm, {sheet}", fontsize=7)
+        axes[1, k].set_xlabel("sensor pixel", fontsize=7)
         for ax in axes[:, k]:
             ax.tick_params(labelsize=6)
-    fig.suptitle(study.title, fontsize=9)
+    cfg = study.images[0]
+    fig.suptitle(f"{study.title}\nmethod {cfg.settings.method}, {cfg.camera.samples} aperture samples per pixel "
+                 f"(scale {study.scale})", fontsize=9)
     fig.tight_layout()
 
     def write(tmp):
