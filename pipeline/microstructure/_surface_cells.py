@@ -10,8 +10,8 @@ from numba import njit
 from .. import rng as _rng
 from .._intrinsics import any_inside4
 from ..rng import uniform
-from ._constants import (ENDS, FLEN, FLEN_SD, PITCH, PLATE, SHAPE, TIP, CTRL)
-from ._lattice import _controls, _node_from, _spline, chain_interval, is_centre
+from ._constants import (CTRL, ENDS, FLEN, FLEN_SD, JITTER, PITCH, PLATE, SHAPE, T0, TIP, WALLVAR)
+from ._lattice import _controls, _spline, chain_interval, is_centre
 from ._slice import _in_tip_wall, _polygon_phase, centre_tables, face_distance, fibre_min_len
 from ._vessels import member_of
 
@@ -19,14 +19,19 @@ from ._surface_rows import (P_FACE, P_LUMEN, P_PLATE, P_REACH, P_TIP, P_TIP_END,
                             _ellipse_margin, _row)
 
 CACHE_SLOTS = 1 << 15  # direct-mapped cache of control values and fibre cells (a power of 2)
+NEAR = 16  # the near cache: nodes (n mod NEAR, m mod NEAR) with their four control values at one slice
 
 
 def new_cache():
     """Per-thread memo of pure functions of ids (control values of (node, slice), the fibre cell
-    around L): (keys, control values, cell keys, cells).  It changes no result."""
+    around L): (keys, control values, cell keys, cells, scratch, near keys, near control values).
+    The near cache holds, per node of a small window that moves with the points, the four
+    control values its spline reads at one control slice: the nodes of one point, and of the
+    next points along a ray, are found there without hashing.  It changes no result."""
     return (np.full((CACHE_SLOTS, 4), np.iinfo(np.int64).min, np.int64), np.empty((CACHE_SLOTS, 3)),
             np.full((CACHE_SLOTS, 3), np.iinfo(np.int64).min, np.int64), np.empty((CACHE_SLOTS, 2)),
-            np.empty((4, 3)))
+            np.empty((4, 3)), np.full((NEAR * NEAR, 4), np.iinfo(np.int64).min, np.int64),
+            np.empty((NEAR * NEAR, 4, 3)))
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
@@ -38,19 +43,19 @@ def _slot(a, b, c, d):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def node_cached(seed, M, n, m, L, cache):
-    """:func:`~pipeline.microstructure._lattice.node_state`, its control values memoised."""
-    CK, CV = cache[0], cache[1]
-    k, w0, w1, w2, w3 = _spline(L, M[CTRL])
+def _near_fill(seed, n, m, k, j, cache):
+    """Slot j of the near cache: node (n, m)'s control values at slices k - 1 .. k + 2, from the
+    large cache or hashed (and kept there)."""
+    CK, CV, C, NK, NV = cache[0], cache[1], cache[4], cache[5], cache[6]
     sd = np.int64(seed)
-    C = cache[4]
+    NK[j, 0] = n
+    NK[j, 1] = m
+    NK[j, 2] = k
+    NK[j, 3] = sd
     for q in range(4):
         kq = k + q - 1
         i = _slot(n, m, kq, sd)
-        if CK[i, 0] == n and CK[i, 1] == m and CK[i, 2] == kq and CK[i, 3] == sd:
-            for f in range(3):
-                C[q, f] = CV[i, f]
-        else:
+        if not (CK[i, 0] == n and CK[i, 1] == m and CK[i, 2] == kq and CK[i, 3] == sd):
             _controls(seed, n, m, kq, C[q])
             CK[i, 0] = n
             CK[i, 1] = m
@@ -58,41 +63,75 @@ def node_cached(seed, M, n, m, L, cache):
             CK[i, 3] = sd
             for f in range(3):
                 CV[i, f] = C[q, f]
-    return _node_from(M, n, m, w0, w1, w2, w3, C[0], C[1], C[2], C[3])
+        for f in range(3):
+            NV[j, q, f] = CV[i, f]
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def node_cached(seed, M, n, m, L, cache):
+    """:func:`~pipeline.microstructure._lattice.node_state`, its control values memoised.
+
+    Inlined where it is called, with its misses in :func:`_near_fill`: a call across a function
+    boundary costs an atomic reference count per array it touches, more than the node itself."""
+    k, w0, w1, w2, w3 = _spline(L, M[CTRL])
+    NK, NV = cache[5], cache[6]
+    j = (n & (NEAR - 1)) * NEAR + (m & (NEAR - 1))
+    if not (NK[j, 0] == n and NK[j, 1] == m and NK[j, 2] == k and NK[j, 3] == np.int64(seed)):
+        _near_fill(seed, n, m, k, j, cache)
+    # _node_from on the table's row, read in place (no array views).
+    c = M[PITCH]
+    r = 0.0
+    t = 0.0
+    w = 0.0
+    for q in range(4):
+        wq = w0 if q == 0 else (w1 if q == 1 else (w2 if q == 2 else w3))
+        r += wq * NV[j, q, 0]
+        t += wq * NV[j, q, 1]
+        w += wq * NV[j, q, 2]
+    return n * c + M[JITTER] * c * r, m * c + M[JITTER] * c * t, M[T0] * (1.0 + M[WALLVAR] * w)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _fibre_cell(seed, M, L, n, m, min_len, cache):
-    """:func:`chain_interval` of fibre (n, m) at L, memoised (a cell holds for every L inside it)."""
+def _cell_fill(seed, M, L, n, m, min_len, i, cache):
+    """Slot i of the fibre-cell cache: fibre (n, m)'s cell around L."""
     EK, EV = cache[2], cache[3]
-    sd = np.int64(seed)
-    i = _slot(n, m, 7, sd)
-    if EK[i, 0] == n and EK[i, 1] == m and EK[i, 2] == sd and EV[i, 0] <= L < EV[i, 1]:
-        return EV[i, 0], EV[i, 1]
     ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
     lo, hi = chain_interval(L, seed, _rng.FIBRE_END, n, m, ph, M[FLEN], M[FLEN_SD], min_len)
     EK[i, 0] = n
     EK[i, 1] = m
-    EK[i, 2] = sd
+    EK[i, 2] = np.int64(seed)
     EV[i, 0] = lo
     EV[i, 1] = hi
-    return lo, hi
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def _fibre_cell(seed, M, L, n, m, min_len, cache):
+    """:func:`chain_interval` of fibre (n, m) at L, memoised (a cell holds for every L inside it)."""
+    EK, EV = cache[2], cache[3]
+    i = _slot(n, m, 7, np.int64(seed))
+    if not (EK[i, 0] == n and EK[i, 1] == m and EK[i, 2] == np.int64(seed) and EV[i, 0] <= L < EV[i, 1]):
+        _cell_fill(seed, M, L, n, m, min_len, i, cache)
+    return EV[i, 0], EV[i, 1]
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
 def _nodes(seed, M, L, n0, m0, NW, have, n, m, cache):
     """Node (n, m)'s (R, T, inset) at L, from the small window cache NW (origin n0, m0)."""
     i = n - n0
     j = m - m0
-    if 0 <= i < NW.shape[0] and 0 <= j < NW.shape[1]:
-        if have[i, j] == 0:
-            NW[i, j, 0], NW[i, j, 1], NW[i, j, 2] = node_cached(seed, M, n, m, L, cache)
-            have[i, j] = 1
+    inside = 0 <= i < NW.shape[0] and 0 <= j < NW.shape[1]
+    if inside and have[i, j] != 0:
         return NW[i, j, 0], NW[i, j, 1], NW[i, j, 2]
-    return node_cached(seed, M, n, m, L, cache)
+    a, b, c = node_cached(seed, M, n, m, L, cache)  # one call site: it is inlined
+    if inside:
+        NW[i, j, 0] = a
+        NW[i, j, 1] = b
+        NW[i, j, 2] = c
+        have[i, j] = 1
+    return a, b, c
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
 def _fibre(seed, M, L, n, m, vessels, nv, NW, have, n0, m0, FErow, FJrow, cache):
     """The generator's per-centre tables (build_slice) for centre (n, m) at L.
 

@@ -191,6 +191,59 @@ def _find(P, n, key):
     return -1
 
 
+@njit(cache=True, nogil=True)
+def _far_unproven(Pb, nb, i, skip, step):
+    """Whether a row at a step's end beyond a regime surface (row i), other than it and the
+    primitive crossed last, may switch within the step: its clearance ball at the end does not
+    reach back to the step's start (the rows of the far side say nothing of the near side)."""
+    for j in range(nb):
+        if j != i and not (skip[0] > 0.0 and _same(Pb, j, skip)) and Pb[j, 6] < step:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _before_root(X, d, s, s_end, g_lo, g_hi, key, lq, ctx, Pw, Pb, cache, every, tol):
+    """Regula falsi (Illinois) on primitive ``key``'s g, whose sign differs at s and s_end: the
+    last point found on s's side within ``tol`` of its root.  Returns (found, that point, its
+    phase, its rows copied into Pb and their number, evaluations)."""
+    lo = s
+    hi = s_end
+    ph_lo = np.uint8(0)
+    n_lo = 0
+    k = 0
+    side = 0
+    neg = g_lo < 0.0
+    while hi - lo > tol:
+        mid = lo + (hi - lo) * g_lo / (g_lo - g_hi)
+        if not (lo < mid < hi) or hi - lo < 4.0 * tol:
+            mid = 0.5 * (lo + hi)
+        if mid <= lo or mid >= hi:
+            break
+        ph, nm = surface_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, Pw, cache, every)
+        k += 1
+        i = _find(Pw, nm, key) if ph != 255 else -1
+        if i < 0:
+            return False, s, ph_lo, 0, k
+        gm = Pw[i, 5]
+        if (gm < 0.0) == neg:
+            lo = mid
+            g_lo = gm
+            ph_lo = ph
+            n_lo = nm
+            _copy_rows(Pb, Pw, nm)
+            if side == -1:
+                g_hi *= 0.5
+            side = -1
+        else:
+            hi = mid
+            g_hi = gm
+            if side == 1:
+                g_lo *= 0.5
+            side = 1
+    return lo > s, lo, ph_lo, n_lo, k
+
+
 @njit(inline="always", cache=True, nogil=True)
 def _copy_rows(dst, src, n):
     for i in range(n):
@@ -296,7 +349,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     base = np.empty(3)
     e = np.empty(3)
     every = np.zeros(5)
-    prev_key = np.zeros(5)
+    Pp = np.empty((MAX_PRIMS, N_COLS))
     seg_skip = np.zeros(5)
     lq = 0.0
     for r in range(pos.shape[0]):
@@ -333,10 +386,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
         t_face = _face(X, d, thickness)
         have = True  # P holds the rows at s (the previous step's end, or the start)
         relax_ok = True
-        prev_ok = False  # prev_key's g was prev_g at prev_s on this segment
+        prev_ok = False  # Pp holds the npp rows at prev_s, an earlier step's start on this segment
+        npp = 0
         force_free = False  # the primitive passed last is entered, whatever its g's rounding
         prev_s = 0.0
-        prev_g = 0.0
         while st == 0:
             if not have:
                 ph, n = surface_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, every)
@@ -357,23 +410,32 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             relax = False
             if a < 0:
                 step = other
-                prev_ok = False
             else:
                 g_a = P[a, 5]
                 if skip_free or g_a > 0.0 or _regime(P[a, 0]):
                     # Approached from outside, A keeps its proven clearance; so it does while the
-                    # primitive crossed last is free (one free primitive per step), and a regime
-                    # surface is never passed blindly.
+                    # primitive crossed last is free (one free primitive per step).  A regime
+                    # surface is passed only where the rows of its far side prove the part of the
+                    # step beyond it free (checked at the step's end).
                     step = min(P[a, 6], other)
+                    if relax_ok and g_a < 0.0 and P[a, 6] < other:
+                        # Inside a regime surface's negative set (convex in the pulled-back
+                        # coordinates, like a lumen): as far as the others allow.
+                        step = other
+                        relax = True
                     # Over-relaxed steps, kept only if the step's end is in the other phase (a
                     # crossing, bracketed: A, entered once, switched first) or A's g is still
                     # positive there and the clearance balls of both ends cover the step (no chord
                     # of A between them; inside A other primitives apply).  Approaching A (g
-                    # falling since the last step): past the secant's root of g.  Leaving it (g
+                    # falling since an earlier step): past the secant's root of g, or short of it
+                    # while the primitive crossed last is free (``strict``: then A must not switch
+                    # at all, so that one primitive at most changes the phase).  Leaving it (g
                     # rising): as far as the balls would cover were g to keep rising at most 0.8
                     # times as fast.
-                    if (relax_ok and not skip_free and g_a > 0.0 and not _regime(P[a, 0]) and P[a, 6] < other
-                            and prev_ok and _same(P, a, prev_key) and prev_g != g_a):
+                    ip = _find(Pp, npp, key) if prev_ok else -1
+                    prev_g = Pp[ip, 5] if ip >= 0 else g_a
+                    if (relax_ok and (not skip_free or _regime(P[a, 0])) and g_a > 0.0 and P[a, 6] < other
+                            and prev_g > 0.0 and prev_g != g_a):
                         c_a = P[a, 6]
                         if prev_g > g_a:
                             root = OVERSHOOT * g_a * (s - prev_s) / (prev_g - g_a)
@@ -384,15 +446,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                             rise = 0.8 * (g_a - prev_g) / (s - prev_s) * c_a / g_a  # per µm, in clearance
                             step = min(2.0 * c_a / (1.0 - rise) if rise < 0.9 else 20.0 * c_a, 20.0 * c_a, other)
                             relax = True
-                    prev_ok = g_a > 0.0
-                    if prev_ok:
-                        for q in range(5):
-                            prev_key[q] = P[a, q]
-                        prev_s = s
-                        prev_g = g_a
                 else:
                     step = other
-                    prev_ok = False
             relax_ok = True
             step *= step_scale
             near = step <= hit
@@ -408,7 +463,30 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             if phb == 255:
                 st = NEEDS_REGION
                 break
-            if phb == med and relax and not near:
+            if relax and not near and _regime(P[a, 0]):
+                # A long step from a regime surface A: kept where it is proven, else cut short of
+                # A's root (then only the near side's rows apply), else taken again on A's own
+                # clearance.
+                i = _find(Pb, nb, key)
+                if i >= 0 and (Pb[i, 5] < 0.0) != (g_a < 0.0):
+                    if skip_free or _far_unproven(Pb, nb, i, skip, s_end - s):
+                        ok, lo, phb, nb, k = _before_root(X, d, s, s_end, g_a, Pb[i, 5], key, lq, ctx, Pa, Pb, cache,
+                                                           every, tol)
+                        ne += k
+                        if ok:
+                            s_end = lo
+                            at_face = False
+                        else:
+                            i = -1
+                    elif phb == med:
+                        npass += 1  # a regime surface passed with no phase change
+                elif i >= 0 and g_a > 0.0 and P[a, 6] + Pb[i, 6] < s_end - s:
+                    i = -1  # A approached from outside may hold a chord between the ends
+                if i < 0:
+                    have = True
+                    relax_ok = False
+                    continue
+            elif phb == med and relax and not near:
                 i = _find(Pb, nb, key)
                 if i < 0 or Pb[i, 5] <= 0.0 or P[a, 6] + Pb[i, 6] < s_end - s:
                     # A may hold a chord between the ends, or was entered with no phase change
@@ -426,6 +504,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     X[1] = thickness if d[1] > 0.0 else 0.0
                     st = TRANSMITTED if d[1] > 0.0 else REFLECTED
                     break
+                _copy_rows(Pp, P, n)
+                npp = n
+                prev_s = s
+                prev_ok = True
                 s = s_end
                 n = nb
                 _copy_rows(P, Pb, nb)
@@ -559,7 +641,13 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 d[q] = nd[q]
             t_face = _face(X, d, thickness)
             for q in range(5):
-                skip[q] = 0.0 if _regime(key[0]) else key[q]
+                skip[q] = key[q]
+            if _regime(key[0]):
+                # A regime surface is left out only from its positive side (outside its convex
+                # negative set, which a line moving away never re-enters).
+                j = _find(Pb, nb, key) if t_go == hi else _find(Pa, na, key)
+                if j < 0 or (Pb[j, 5] if t_go == hi else Pa[j, 5]) <= 0.0:
+                    skip[0] = 0.0
             seg_ne = ne
             seg_npass = npass
             for q in range(5):
