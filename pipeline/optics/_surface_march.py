@@ -349,7 +349,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     base = np.empty(3)
     e = np.empty(3)
     every = np.zeros(5)
-    Pp = np.empty((MAX_PRIMS, N_COLS))
+    prev_key = np.zeros(5)
     seg_skip = np.zeros(5)
     lq = 0.0
     for r in range(pos.shape[0]):
@@ -386,8 +386,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
         t_face = _face(X, d, thickness)
         have = True  # P holds the rows at s (the previous step's end, or the start)
         relax_ok = True
-        prev_ok = False  # Pp holds the npp rows at prev_s, an earlier step's start on this segment
-        npp = 0
+        prev_ok = False  # prev_key's g was prev_g at prev_s on this segment
+        prev_g = 0.0
         force_free = False  # the primitive passed last is entered, whatever its g's rounding
         prev_s = 0.0
         while st == 0:
@@ -410,6 +410,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             relax = False
             if a < 0:
                 step = other
+                prev_ok = False
             else:
                 g_a = P[a, 5]
                 if skip_free or g_a > 0.0 or _regime(P[a, 0]):
@@ -418,7 +419,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # surface is passed only where the rows of its far side prove the part of the
                     # step beyond it free (checked at the step's end).
                     step = min(P[a, 6], other)
-                    if relax_ok and g_a < 0.0 and P[a, 6] < other:
+                    if relax_ok and g_a < 0.0 and _regime(P[a, 0]) and P[a, 6] < other:
                         # Inside a regime surface's negative set (convex in the pulled-back
                         # coordinates, like a lumen): as far as the others allow.
                         step = other
@@ -427,15 +428,11 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # crossing, bracketed: A, entered once, switched first) or A's g is still
                     # positive there and the clearance balls of both ends cover the step (no chord
                     # of A between them; inside A other primitives apply).  Approaching A (g
-                    # falling since an earlier step): past the secant's root of g, or short of it
-                    # while the primitive crossed last is free (``strict``: then A must not switch
-                    # at all, so that one primitive at most changes the phase).  Leaving it (g
+                    # falling since the last step): past the secant's root of g.  Leaving it (g
                     # rising): as far as the balls would cover were g to keep rising at most 0.8
-                    # times as fast.
-                    ip = _find(Pp, npp, key) if prev_ok else -1
-                    prev_g = Pp[ip, 5] if ip >= 0 else g_a
+                    # times as fast.  A regime surface's steps are checked at the end as below.
                     if (relax_ok and (not skip_free or _regime(P[a, 0])) and g_a > 0.0 and P[a, 6] < other
-                            and prev_g > 0.0 and prev_g != g_a):
+                            and prev_ok and _same(P, a, prev_key) and prev_g != g_a):
                         c_a = P[a, 6]
                         if prev_g > g_a:
                             root = OVERSHOOT * g_a * (s - prev_s) / (prev_g - g_a)
@@ -446,8 +443,15 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                             rise = 0.8 * (g_a - prev_g) / (s - prev_s) * c_a / g_a  # per µm, in clearance
                             step = min(2.0 * c_a / (1.0 - rise) if rise < 0.9 else 20.0 * c_a, 20.0 * c_a, other)
                             relax = True
+                    prev_ok = g_a > 0.0
+                    if prev_ok:
+                        for q in range(5):
+                            prev_key[q] = P[a, q]
+                        prev_s = s
+                        prev_g = g_a
                 else:
                     step = other
+                    prev_ok = False
             relax_ok = True
             step *= step_scale
             near = step <= hit
@@ -504,10 +508,6 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     X[1] = thickness if d[1] > 0.0 else 0.0
                     st = TRANSMITTED if d[1] > 0.0 else REFLECTED
                     break
-                _copy_rows(Pp, P, n)
-                npp = n
-                prev_s = s
-                prev_ok = True
                 s = s_end
                 n = nb
                 _copy_rows(P, Pb, nb)
