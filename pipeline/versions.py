@@ -19,7 +19,9 @@ STAGES = {"micro": "3", "rays": "4", "summary": "3", "pool": "1"}
 GENERATOR = STAGES["micro"]
 
 # One per tracing method: bump a method's when its rays change for the same inputs.
-TRACERS = {"paper": "7", "fast": "7", "accurate": "7", "exact": "2"}
+#   exact 3: regime surfaces crossed on long steps; a few rays in a thousand part at a crossing
+#            where the phase flickers within rounding (1e-12 µm), and so differ after it.
+TRACERS = {"paper": "7", "fast": "7", "accurate": "7", "exact": "3"}
 
 # Cached camera images (2: entries verified, key and digest).
 CAMERA = "2"
