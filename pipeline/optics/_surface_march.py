@@ -1,12 +1,12 @@
 """Numba kernel of the exact tracer on analytic surfaces (docs/methods.md#the-exact-method): the
 generated wood's own and the reference lattices', one march for both.
 
-Each point evaluation (:func:`surface_at`: :mod:`pipeline.microstructure.surface` for wood,
-:mod:`pipeline.optics._lattice_rows` for a lattice, chosen by the context's type) gives the
-phase and the primitives near the point, each with its signed function g and
-a proven clearance.  A step may never let two primitives switch, nor pass a
-regime surface (a ray band, a vessel outline, a ply) on the bounds of one
-side: a step is the least proven clearance, except that inside the nearest
+Each point evaluation (:func:`~pipeline.optics._surface_points.surface_at`: wood or lattice,
+chosen by the context's type) gives the phase and the primitives near the point, each with its
+signed function g and a proven clearance.  A step may never let two primitives switch, nor pass
+a regime surface (a ray band, a vessel outline, a ply) unless the rows of both its sides prove
+the step (else it is cut short of the surface's root): a step is the least proven clearance,
+except that inside the nearest
 primitive A (its negative set, convex in the pulled-back coordinates, meets a
 line in one interval) A may switch once, and the primitive crossed last is left
 out of the clearance (the ray is leaving it).  A step whose end is in the other phase brackets a crossing,
@@ -20,63 +20,16 @@ below ``hit`` means the ray stands on a surface: the phase is sampled
 import math
 
 import numpy as np
-from numba import njit, types
-from numba.extending import overload
+from numba import njit
 
-from ..microstructure.surface import MAX_PRIMS, N_COLS, P_BAND, P_PLY, P_REACH, P_VESSEL_OUT, evaluate_at
-from ._lattice_rows import CONTEXT_LEN, lattice_normal, lattice_rows
+from ..microstructure.surface import MAX_PRIMS, N_COLS, P_BAND, P_PLY, P_REACH, P_VESSEL_OUT
+from ._surface_points import surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
 
 NEEDS_REGION = NEEDS_CHUNK  # the ray left the precomputed region: the caller widens it and traces again
 # Tolerances [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are.
 HIT = 1e-9  # a clearance below this: the ray stands on a surface
 TOL = 1e-9  # regula falsi narrows a crossing to this before the lattice bisection
-
-
-def _is_lattice(ctx) -> bool:
-    return isinstance(ctx, types.BaseTuple) and len(ctx) == CONTEXT_LEN
-
-
-def surface_at(R, T, L, lq, ctx, P, cache, want):
-    """(phase, number of rows) of the medium of ``ctx`` at (R, T, L), its rows in ``P``: generated
-    wood (:func:`~pipeline.microstructure.surface.evaluate_at`) or a reference lattice
-    (:func:`~pipeline.optics._lattice_rows.lattice_rows`).  Chosen by the context's type when the
-    march compiles, so one kernel traces both."""
-    raise NotImplementedError("surface_at runs inside the march's Numba kernel only")
-
-
-@overload(surface_at)
-def _surface_at(R, T, L, lq, ctx, P, cache, want):
-    if _is_lattice(ctx):
-        return lambda R, T, L, lq, ctx, P, cache, want: lattice_rows(R, T, ctx, P)
-    return lambda R, T, L, lq, ctx, P, cache, want: evaluate_at(R, T, L, lq, ctx, P, cache, want)
-
-
-def surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e):
-    """(found, evaluations): the unit normal of primitive ``key`` at ``base`` into ``nrm``.  The
-    wood's is the central-difference gradient of its g (step ``h_grad``); a lattice's, its
-    circle's or face's own."""
-    raise NotImplementedError("surface_normal runs inside the march's Numba kernel only")
-
-
-@overload(surface_normal)
-def _surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e):
-    if _is_lattice(ctx):
-        return lambda base, lq, ctx, P, key, cache, h_grad, nrm, e: (lattice_normal(base[0], base[1], ctx, key, nrm),
-                                                                     0)
-    return lambda base, lq, ctx, P, key, cache, h_grad, nrm, e: _gradient(base, lq, ctx, P, key, cache, h_grad,
-                                                                          nrm, e)
-
-
-@njit(cache=True, nogil=True)
-def _g_of(X, d, s, lq, ctx, P, key, cache):
-    """Signed function of primitive ``key`` at X + s·d (nan when it is not listed there)."""
-    ph, n = surface_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, key)
-    for i in range(n):
-        if (P[i, 0] == key[0] and P[i, 1] == key[1] and P[i, 2] == key[2] and P[i, 3] == key[3]
-                and P[i, 4] == key[4]):
-            return P[i, 5]
-    return np.nan
 
 
 @njit(cache=True, nogil=True)
@@ -114,31 +67,6 @@ def _regime(kind):
     """Surfaces past which other primitives apply (a ray band, a vessel outline, a ply): the rows
     listed on one side say nothing of the other, so these are never stepped over blindly."""
     return kind == P_BAND or kind == P_VESSEL_OUT or kind == P_PLY
-
-
-@njit(cache=True, nogil=True)
-def _gradient(base, lq, ctx, P, key, cache, h_grad, nrm, e):
-    """(found, evaluations): the central-difference gradient of primitive ``key``'s g at ``base``
-    (one-sided where the primitive is not listed on a side), normalised into ``nrm``."""
-    g0 = np.nan  # g at base: only for a one-sided difference
-    k = 6
-    ok = True
-    for q in range(3):
-        e[0] = 0.0
-        e[1] = 0.0
-        e[2] = 0.0
-        e[q] = 1.0
-        gp = _g_of(base, e, h_grad, lq, ctx, P, key, cache)
-        gm = _g_of(base, e, -h_grad, lq, ctx, P, key, cache)
-        nrm[q] = (gp - gm) / (2.0 * h_grad)
-        if not (nrm[q] == nrm[q]):  # a side where the primitive is not listed: one-sided
-            if not (g0 == g0):
-                g0 = _g_of(base, e, 0.0, lq, ctx, P, key, cache)
-                k += 1
-            nrm[q] = (gp - g0) / h_grad if gp == gp else (g0 - gm) / h_grad
-        if not (nrm[q] == nrm[q]):
-            ok = False
-    return ok, k
 
 
 PROBE = 1024.0  # lattice points (about 1e-9 µm) probed past a root where g and the phase part
