@@ -49,9 +49,9 @@ CAMERA_MEMORY, CAMERA_BYTES_PER_WOOD_VOXEL = 330e6, 0.27
 RAY_BYTES = 512  # a ray's state, result and beam entry in one trace
 DATASET_RAY_BYTES = 24  # theta_r, theta_l, interfaces and status of a ray in a result Dataset
 INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
-                   # exact: no wood generated; ~100 µs an interface (1000 rays x 1.5 mm: 96 CPU-µs on 2
+                   # exact: no wood generated; ~75 µs an interface (1000 rays x 1.5 mm: 73 CPU-µs on 2
                    # threads; fewer rays find fewer control values memoised), plus its regions
-                   "exact": 1.1e-4}
+                   "exact": 8.5e-5}
 REGION_MEMORY_FACTOR = 4.0  # exact: a worker's growth with its regions (their tiles, caches and arenas)
 REGION_CPU_S_PER_BYTE = 5e-8  # exact: building a trace's regions (distortion tiles: 1.3 s for 1 mm of birch)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)

@@ -43,10 +43,9 @@ def _slot(a, b, c, d):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _near_fill(seed, n, m, k, j, cache):
+def _near_fill(seed, n, m, k, j, CK, CV, C, NK, NV):
     """Slot j of the near cache: node (n, m)'s control values at slices k - 1 .. k + 2, from the
     large cache or hashed (and kept there)."""
-    CK, CV, C, NK, NV = cache[0], cache[1], cache[4], cache[5], cache[6]
     sd = np.int64(seed)
     NK[j, 0] = n
     NK[j, 1] = m
@@ -68,16 +67,18 @@ def _near_fill(seed, n, m, k, j, cache):
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def node_cached(seed, M, n, m, L, cache):
-    """:func:`~pipeline.microstructure._lattice.node_state`, its control values memoised.
+def node_cached(seed, M, n, m, L, CK, CV, C, NK, NV):
+    """:func:`~pipeline.microstructure._lattice.node_state`, its control values memoised in the
+    arrays of the cache tuple (:func:`new_cache`).
 
     Inlined where it is called, with its misses in :func:`_near_fill`: a call across a function
-    boundary costs an atomic reference count per array it touches, more than the node itself."""
+    boundary costs an atomic reference count per array it touches, more than the node itself.
+    It takes the memo's arrays, not the cache tuple: an inlined function copies every tuple it
+    is given at each place it is inlined (a whole cache tuple per node cost 4 ns an array)."""
     k, w0, w1, w2, w3 = _spline(L, M[CTRL])
-    NK, NV = cache[5], cache[6]
     j = (n & (NEAR - 1)) * NEAR + (m & (NEAR - 1))
     if not (NK[j, 0] == n and NK[j, 1] == m and NK[j, 2] == k and NK[j, 3] == np.int64(seed)):
-        _near_fill(seed, n, m, k, j, cache)
+        _near_fill(seed, n, m, k, j, CK, CV, C, NK, NV)
     # _node_from on the table's row, read in place (no array views).
     c = M[PITCH]
     r = 0.0
@@ -92,9 +93,8 @@ def node_cached(seed, M, n, m, L, cache):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _cell_fill(seed, M, L, n, m, min_len, i, cache):
+def _cell_fill(seed, M, L, n, m, min_len, i, EK, EV):
     """Slot i of the fibre-cell cache: fibre (n, m)'s cell around L."""
-    EK, EV = cache[2], cache[3]
     ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
     lo, hi = chain_interval(L, seed, _rng.FIBRE_END, n, m, ph, M[FLEN], M[FLEN_SD], min_len)
     EK[i, 0] = n
@@ -105,24 +105,23 @@ def _cell_fill(seed, M, L, n, m, min_len, i, cache):
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def _fibre_cell(seed, M, L, n, m, min_len, cache):
+def _fibre_cell(seed, M, L, n, m, min_len, EK, EV):
     """:func:`chain_interval` of fibre (n, m) at L, memoised (a cell holds for every L inside it)."""
-    EK, EV = cache[2], cache[3]
     i = _slot(n, m, 7, np.int64(seed))
     if not (EK[i, 0] == n and EK[i, 1] == m and EK[i, 2] == np.int64(seed) and EV[i, 0] <= L < EV[i, 1]):
-        _cell_fill(seed, M, L, n, m, min_len, i, cache)
+        _cell_fill(seed, M, L, n, m, min_len, i, EK, EV)
     return EV[i, 0], EV[i, 1]
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def _nodes(seed, M, L, n0, m0, NW, have, n, m, cache):
+def _nodes(seed, M, L, n0, m0, NW, have, n, m, CK, CV, C, NK, NV):
     """Node (n, m)'s (R, T, inset) at L, from the small window cache NW (origin n0, m0)."""
     i = n - n0
     j = m - m0
     inside = 0 <= i < NW.shape[0] and 0 <= j < NW.shape[1]
     if inside and have[i, j] != 0:
         return NW[i, j, 0], NW[i, j, 1], NW[i, j, 2]
-    a, b, c = node_cached(seed, M, n, m, L, cache)  # one call site: it is inlined
+    a, b, c = node_cached(seed, M, n, m, L, CK, CV, C, NK, NV)  # one call site: it is inlined
     if inside:
         NW[i, j, 0] = a
         NW[i, j, 1] = b
@@ -132,7 +131,7 @@ def _nodes(seed, M, L, n0, m0, NW, have, n, m, cache):
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def _fibre(seed, M, L, n, m, vessels, nv, NW, have, n0, m0, FErow, FJrow, cache):
+def _fibre(seed, M, L, n, m, vessels, nv, NW, have, n0, m0, FErow, FJrow, CK, CV, C, NK, NV, EK, EV):
     """The generator's per-centre tables (build_slice) for centre (n, m) at L.
 
     Writes FErow (cR, cT, 1/aR², 1/aT², bias) and FJrow (tip walls); returns
@@ -145,14 +144,14 @@ def _fibre(seed, M, L, n, m, vessels, nv, NW, have, n0, m0, FErow, FJrow, cache)
     if member_of(vessels, nv, n, m):
         flag = 2
     elif M[ENDS] != 0.0:
-        lo, hi = _fibre_cell(seed, M, L, n, m, fibre_min_len(M), cache)
-    cR, cT, Nt = _nodes(seed, M, L, n0, m0, NW, have, n, m, cache)
+        lo, hi = _fibre_cell(seed, M, L, n, m, fibre_min_len(M), EK, EV)
+    cR, cT, Nt = _nodes(seed, M, L, n0, m0, NW, have, n, m, CK, CV, C, NK, NV)
     rR1 = rR0 = tT1 = tT0 = 0.0
     if M[SHAPE] != 1.0:
-        rR1, _, _ = _nodes(seed, M, L, n0, m0, NW, have, n + 1, m, cache)
-        rR0, _, _ = _nodes(seed, M, L, n0, m0, NW, have, n - 1, m, cache)
-        _, tT1, _ = _nodes(seed, M, L, n0, m0, NW, have, n, m + 1, cache)
-        _, tT0, _ = _nodes(seed, M, L, n0, m0, NW, have, n, m - 1, cache)
+        rR1, _, _ = _nodes(seed, M, L, n0, m0, NW, have, n + 1, m, CK, CV, C, NK, NV)
+        rR0, _, _ = _nodes(seed, M, L, n0, m0, NW, have, n - 1, m, CK, CV, C, NK, NV)
+        _, tT1, _ = _nodes(seed, M, L, n0, m0, NW, have, n, m + 1, CK, CV, C, NK, NV)
+        _, tT0, _ = _nodes(seed, M, L, n0, m0, NW, have, n, m - 1, CK, CV, C, NK, NV)
     flag, aR, aT = centre_tables(seed, M, L, n, m, flag, lo, hi, cR, cT, Nt, rR1, rR0, tT1, tT0, FErow, FJrow)
     return flag, lo, hi, aR, aT, Nt
 
@@ -179,6 +178,7 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
         m_last = m_first
     n0 = n_first - 1
     m0 = m_first - 1
+    CK, CV, EK, EV, C, NK, NV = cache
     NW = np.empty((8, 8, 3))
     have = np.zeros((8, 8), np.uint8)
     C4 = np.empty((1, 1, 5, 4))
@@ -199,7 +199,8 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
         for n in range(n_first, n_last + 1):
             if not is_centre(n, m):
                 continue
-            flag, lo, hi, aR, aT, Nt = _fibre(seed, M, L, n, m, VL, ns, NW, have, n0, m0, FE, FJ, cache)
+            flag, lo, hi, aR, aT, Nt = _fibre(seed, M, L, n, m, VL, ns, NW, have, n0, m0, FE, FJ, CK, CV, C, NK, NV,
+                                              EK, EV)
             base = n_fl - ((n_fl - (j0 + mj)) & 1)
             if 0 <= mj <= 1 and (n == base or n == base + 2):
                 t = 2 * mj + (n - base) // 2
@@ -263,6 +264,7 @@ def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
     jc = np.int64(round(w / 2.0))
     n_lo = np.int64(math.floor(u)) - 6
     m_lo = 2 * (jc - 1) - 1
+    CK, CV, EK, EV, C, NK, NV = cache
     FE = np.zeros((14, 8, 5))
     FF = np.zeros((14, 8), np.uint8)
     Nt = np.zeros((14, 8))
@@ -276,7 +278,8 @@ def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
         par = j % 2
         n0 = 2 * np.int64(round((u - par) / 2.0)) + par
         for n in (n0 - 2, n0, n0 + 2):
-            flag, lo, hi, _, _, t = _fibre(seed, M, L, n, m, VL, ns, NW, have, n_lo - 1, m_lo - 1, FErow, FJ, cache)
+            flag, lo, hi, _, _, t = _fibre(seed, M, L, n, m, VL, ns, NW, have, n_lo - 1, m_lo - 1, FErow, FJ,
+                                           CK, CV, C, NK, NV, EK, EV)
             ii = n - n_lo
             jj = m - m_lo
             for f in range(5):

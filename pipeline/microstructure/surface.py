@@ -143,15 +143,16 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
     VL = np.empty((max(ns, 1), 5), np.int64)
     VG = np.empty((max(ns, 1), 4))
     VB = np.empty((max(ns, 1), 2, 6))
+    CK, CV, _, _, C, NK, NV = cache
     for q in range(ns):
         for f in range(5):
             VL[q, f] = vessels[vsel[q], f]
         n = VL[q, 0]
         m = VL[q, 1]
-        rl, _, _ = node_cached(seed, M, n - 3, m, Ls, cache)
-        rr, _, _ = node_cached(seed, M, n + 3, m, Ls, cache)
-        _, td, _ = node_cached(seed, M, n, m - 3, Ls, cache)
-        _, tu, _ = node_cached(seed, M, n, m + 3, Ls, cache)
+        rl, _, _ = node_cached(seed, M, n - 3, m, Ls, CK, CV, C, NK, NV)
+        rr, _, _ = node_cached(seed, M, n + 3, m, Ls, CK, CV, C, NK, NV)
+        _, td, _ = node_cached(seed, M, n, m - 3, Ls, CK, CV, C, NK, NV)
+        _, tu, _ = node_cached(seed, M, n, m + 3, Ls, CK, CV, C, NK, NV)
         vessel_outline(rl, rr, td, tu, VG[q])
     vessel_walls(VG, VL, ns, VB)
     first = -1

@@ -22,6 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .._intrinsics import borrowed
 from ..microstructure.surface import MAX_PRIMS, N_COLS, P_BAND, P_PLY, P_REACH, P_VESSEL_OUT
 from ._surface_points import surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
@@ -179,9 +180,10 @@ def _copy_rows(dst, src, n):
             dst[i, q] = src[i, q]
 
 
-@njit(inline="always", cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _at_lattice(X, d, k, lq, ctx, P, cache, every):
-    """surface_at of lattice point k of the segment X + s·d (s = k·LATTICE)."""
+    """surface_at of lattice point k of the segment X + s·d (s = k·LATTICE).  Not inlined: an
+    inlined function copies the context and cache tuples wherever it is inlined."""
     return surface_at(X[0] + k * LATTICE * d[0], X[1] + k * LATTICE * d[1], X[2] + k * LATTICE * d[2], lq, ctx, P,
                       cache, every)
 
@@ -265,6 +267,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     to switch (one free primitive per step).  The phase at the step's end tells whether a primitive
     switched; a switch is then bracketed by regula falsi on its g and put on the lattice.
     """
+    ctx = borrowed(ctx)  # the caller owns them throughout: no atomic reference counts below
+    cache = borrowed(cache)
     P = np.empty((MAX_PRIMS, N_COLS))
     Pa = np.empty((MAX_PRIMS, N_COLS))
     Pb = np.empty((MAX_PRIMS, N_COLS))
