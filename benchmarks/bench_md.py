@@ -86,6 +86,10 @@ def render(doc: dict) -> str:
             how = f" ({tp['how']})" if "how" in tp else ""
             md.append(f"At paper scale (`make table1 SCALE=paper YES=1`, `make bench-table1-paper`) with "
                       f"`{tp.get('method', 'accurate')}`, cold: {tp['cold_s'] / 60:.1f} min{cpu}{how}.")
+            v3 = tp.get("exact_version_3_before_borrowed_arrays")
+            if v3:
+                md.append(f"Before the march borrowed its arrays (the same rays): {v3['cold_s'] / 60:.1f} min, "
+                          f"{v3['cpu_s'] / 60:.1f} CPU-min ({v3['how']}).")
             v2 = tp.get("exact_version_2")
             if v2:
                 md.append(f"With `exact` version 2 (before its regime steps and inlined nodes): {v2['cold_s'] / 60:.1f} "
