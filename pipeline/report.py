@@ -459,7 +459,10 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     quick = {m: base / "camera" / f"{m}-quick" / "figure5.zarr" for m in ("fast", "exact")}
     if all(q.exists() for q in quick.values()):
         pair = {m: open_dataset(q) for m, q in quick.items()}
-        add("The images above are traced with `fast` (0.5 µm voxels): with `exact` Figure 5 costs CPU-hours. "
+        method = camera.attrs.get("tracing_method", "fast")
+        traced = ("with `exact`, on the wood's own surfaces" if method == "exact"
+                  else f"with `{method}` (on voxels): with `exact` Figure 5 costs CPU-hours")
+        add(f"The images above are traced {traced}. "
             f"At a tenth of the aperture samples ({pair['exact'].attrs['samples_per_pixel']} a pixel, the same "
             "samples for both; `make camera-exact`), `exact` beside `fast`:")
         add("")

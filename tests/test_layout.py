@@ -10,8 +10,8 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent / "pipeline"
 
 # Floors, bottom first: a module imports only its own floor and those below.
 FLOORS = [
-    {"pipeline", "pipeline.versions", "pipeline.params", "pipeline.rng", "pipeline._intrinsics", "pipeline.cache",
-     "pipeline.progress", "pipeline.analysis", "pipeline.provenance", "pipeline.publish", "pipeline.runlog"},
+    {"pipeline", "pipeline.versions", "pipeline.params", "pipeline.rng", "pipeline._intrinsics", "pipeline._kernel_cache",
+     "pipeline.cache", "pipeline.progress", "pipeline.analysis", "pipeline.provenance", "pipeline.publish", "pipeline.runlog"},
     {"pipeline.microstructure"},
     {"pipeline.optics"},
     {"pipeline.limits", "pipeline.study", "pipeline.camera"},
