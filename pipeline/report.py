@@ -468,6 +468,14 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         add("")
         L.extend(camera_methods_markdown(camera_rows(pair["fast"]), camera_rows(pair["exact"])))
         add("")
+    full = base / "camera" / "exact" / "figure5.zarr"
+    if full.exists() and camera.attrs.get("tracing_method") != "exact":
+        exact = open_dataset(full)
+        add(f"With all {exact.attrs['samples_per_pixel']} aperture samples (`make camera-exact-paper`, about "
+            "2 CPU-h), `exact` beside the images above:")
+        add("")
+        L.extend(camera_methods_markdown(camera_rows(camera), camera_rows(exact)))
+        add("")
     maps = {n: open_dataset(base / "design" / f"{n}.zarr") for n in MAPS if (base / "design" / f"{n}.zarr").exists()}
     if len(maps) == len(MAPS):
         d0 = next(iter(maps.values()))
