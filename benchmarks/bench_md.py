@@ -86,18 +86,15 @@ def render(doc: dict) -> str:
             how = f" ({tp['how']})" if "how" in tp else ""
             md.append(f"At paper scale (`make table1 SCALE=paper YES=1`, `make bench-table1-paper`) with "
                       f"`{tp.get('method', 'accurate')}`, cold: {tp['cold_s'] / 60:.1f} min{cpu}{how}.")
-            v3 = tp.get("exact_version_3_before_borrowed_arrays")
-            if v3:
-                md.append(f"Before the march borrowed its arrays (the same rays): {v3['cold_s'] / 60:.1f} min, "
-                          f"{v3['cpu_s'] / 60:.1f} CPU-min ({v3['how']}).")
-            v2 = tp.get("exact_version_2")
-            if v2:
-                md.append(f"With `exact` version 2 (before its regime steps and inlined nodes): {v2['cold_s'] / 60:.1f} "
-                          f"min ({v2['how']}).")
-            old = tp.get("accurate")
-            if old:
-                md.append(f"With `accurate`, as Table 1 was traced before: {old['cold_s'] / 60:.1f} min, "
-                          f"{old['cpu_s'] / 60:.1f} CPU-min.")
+            for key, label in (("exact_version_3_before_borrowed_arrays",
+                                "Before the march borrowed its arrays (the same rays)"),
+                               ("exact_version_2", "With `exact` version 2 (before its regime steps and inlined nodes)"),
+                               ("accurate", "With `accurate`, as Table 1 was traced before")):
+                old = tp.get(key)  # earlier measurements kept beside the current one
+                if old:
+                    cpu_old = f", {old['cpu_s'] / 60:.1f} CPU-min" if "cpu_s" in old else ""
+                    how_old = f" ({old['how']})" if "how" in old else ""
+                    md.append(f"{label}: {old['cold_s'] / 60:.1f} min{cpu_old}{how_old}.")
         p = s.get("paper_scene")
         if p:
             md.append(f"A paper-scale scene (1 mm birch, `accurate`), {p['rays']} rays: {p['seconds']} s, of which "
