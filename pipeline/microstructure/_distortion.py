@@ -22,52 +22,117 @@ def _sig(x):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _add_dipole(out, gR, gT, R0, T0_, k1, k2, k3, k4, sign, rv, acut, bcut):
-    """Add one dipole (docs/methods.md#distortion) to the tile grid ``out``.
+def _sig_diff(g, X0, k1, k2, rv, acut, D):
+    """D[i] = σ(k1 a) − σ(k2 a) at a = (g[i] − X0)/rv where |a| ≤ acut, else 0; whether any |a| is."""
+    hit = False
+    for i in range(g.shape[0]):
+        a = (g[i] - X0) / rv
+        if abs(a) <= acut:
+            D[i] = _sig(k1 * a) - _sig(k2 * a)
+            hit = True
+        else:
+            D[i] = 0.0
+    return hit
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _gauss(g, X0, w, rv, bcut, B):
+    """B[i] = exp(−a²/(2 w²)) at a = (g[i] − X0)/rv where |a| ≤ bcut, else 0."""
+    for i in range(g.shape[0]):
+        a = (g[i] - X0) / rv
+        B[i] = math.exp(-a * a / (2.0 * w * w)) if abs(a) <= bcut else 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _add_separable(out, gR, gT, R0, T0_, DR, DT, anyR, anyT, k2, k3, k4, sign, rv, bcut, BR, BT):
+    """Add one dipole (docs/methods.md#distortion) to the tile grid ``out`` (2, n, n), given its sigmoid
+    differences along R and T (:func:`_sig_diff`, which depend on the dipole's position alone).
 
     d(a, b) = [σ(k1 a) − σ(k2 a)]·(k4/k2)·exp(−b²/(2 (k3/k2)²)), in reference
     voxels; u uses (a, b) = (R, T), v uses (T, R).  Separable, so the grid
     costs O(n) exponentials per dipole.
     """
-    n = gR.shape[0]
-    w = k3 / k2
-    amp = sign * k4 / k2 * rv
-    AR = np.zeros(n)
-    BR = np.zeros(n)
-    AT = np.zeros(n)
-    BT = np.zeros(n)
-    anyR = False
-    anyT = False
-    for i in range(n):
-        a = (gR[i] - R0) / rv
-        if abs(a) <= acut:
-            AR[i] = (_sig(k1 * a) - _sig(k2 * a)) * amp
-            anyR = True
-        if abs(a) <= bcut:
-            BR[i] = math.exp(-a * a / (2.0 * w * w))
-        b = (gT[i] - T0_) / rv
-        if abs(b) <= acut:
-            AT[i] = (_sig(k1 * b) - _sig(k2 * b)) * amp
-            anyT = True
-        if abs(b) <= bcut:
-            BT[i] = math.exp(-b * b / (2.0 * w * w))
     if not (anyR or anyT):
         return 0
-    for i in range(n):
-        for j in range(n):
-            out[i, j, 0] += AR[i] * BT[j]
-            out[i, j, 1] += AT[j] * BR[i]
+    w = k3 / k2
+    amp = sign * k4 / k2 * rv
+    n = gR.shape[0]
+    # Only the span of nonzero factors: adding a zero product leaves a sum that started at +0 as
+    # it is, bit for bit, so the grid is the full outer product's.
+    if anyR:
+        _gauss(gT, T0_, w, rv, bcut, BT)
+        b0, b1 = _nonzero_span(BT)
+        if b1 > b0:
+            for i in range(n):
+                if DR[i] != 0.0:
+                    ar = DR[i] * amp
+                    for j in range(b0, b1):
+                        out[0, i, j] += ar * BT[j]
+    if anyT:
+        _gauss(gR, R0, w, rv, bcut, BR)
+        t0, t1 = _nonzero_span(DT)
+        for i in range(n):
+            if BR[i] != 0.0:
+                for j in range(t0, t1):
+                    out[1, i, j] += (DT[j] * amp) * BR[i]
     return 1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def distortion_tile(seed, M, a, b, out, stats):
+def _add_dipole(out, gR, gT, R0, T0_, k1, k2, k3, k4, sign, rv, acut, bcut, work):
+    """:func:`_add_separable` with the dipole's own sigmoid differences (``work``: 4 × n scratch)."""
+    anyR = _sig_diff(gR, R0, k1, k2, rv, acut, work[0])
+    anyT = _sig_diff(gT, T0_, k1, k2, rv, acut, work[1])
+    return _add_separable(out, gR, gT, R0, T0_, work[0], work[1], anyR, anyT, k2, k3, k4, sign, rv, bcut,
+                          work[2], work[3])
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _nonzero_span(x):
+    """(first, last + 1) index of the nonzero entries of ``x`` ((0, 0) if none)."""
+    lo = 0
+    while lo < x.shape[0] and x[lo] == 0.0:
+        lo += 1
+    hi = x.shape[0]
+    while hi > lo and x[hi - 1] == 0.0:
+        hi -= 1
+    return lo, hi
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def large_range(M, a, b):
+    """(n_lo, n_hi, m_lo, m_hi): the nodes whose large-scale dipole reaches tile (a, b)."""
+    c = M[PITCH]
+    G = c / GRID_PER_PITCH
+    halo = 1200.0 * (0.5 * M[SCALE])
+    return (np.int64(math.floor(((a * TILE) * G - halo) / c)), np.int64(math.ceil(((a * TILE + TILE) * G + halo) / c)),
+            np.int64(math.floor(((b * TILE) * G - halo) / c)), np.int64(math.ceil(((b * TILE + TILE) * G + halo) / c)))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def large_dipoles_in(seed, M, n_lo, n_hi, m_lo, m_hi, out):
+    """The nodes (nn, m) of [n_lo, n_hi] × [m_lo, m_hi] that hold a large-scale dipole, by m then
+    nn, into ``out``; their number."""
+    k = 0
+    for m in range(m_lo, m_hi + 1):
+        for nn in range(n_lo, n_hi + 1):
+            if is_centre(nn, m) and uniform(seed, _rng.LARGE_DIPOLE, nn, m, 0) < M[LARGE_P]:
+                out[k, 0] = nn
+                out[k, 1] = m
+                k += 1
+    return k
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def distortion_tile(seed, M, a, b, out, stats, large, large_box):
     """Displacement d = (dR, dT) [µm] on the (TILE+1)² grid of tile (a, b).
 
     Grid node (i, j) of the tile sits at ((a·TILE + i)·G, (b·TILE + j)·G)
     with G = pitch / GRID_PER_PITCH.  Each dipole's contribution to a node
     depends only on the pair, and dipoles are added in a fixed global order,
-    so nodes shared by two tiles get identical values.
+    so nodes shared by two tiles get identical values.  ``large``: the
+    large-scale dipoles (:func:`large_dipoles_in`) of the nodes ``large_box``
+    (n_lo, n_hi, m_lo, m_hi), which must hold :func:`large_range`.
     """
     c = M[PITCH]
     G = c / GRID_PER_PITCH
@@ -78,7 +143,7 @@ def distortion_tile(seed, M, a, b, out, stats):
     for i in range(n):
         gR[i] = (a * TILE + i) * G
         gT[i] = (b * TILE + i) * G
-    out[:, :, :] = 0.0
+    uv = np.zeros((2, n, n))  # (dR, dT) in planes while summing: contiguous rows
     amp = M[DIST]
     # Fibre and vessel dipoles: support ±250 reference voxels.
     halo = 250.0 * rv
@@ -89,8 +154,16 @@ def distortion_tile(seed, M, a, b, out, stats):
     vessels = np.empty((4096, 5), np.int64)
     nv = vessels_in_region(seed, M, n_lo, n_hi, m_lo, m_hi, vessels)
     terms = 0
+    work = np.empty((4, n))
     if amp > 0.0:
+        # A fibre dipole's sigmoid differences depend on its column (R) and row (T) alone: once each.
+        DR = np.empty((n_hi - n_lo + 1, n))
+        anyR = np.empty(n_hi - n_lo + 1, np.bool_)
+        for nn in range(n_lo, n_hi + 1):
+            anyR[nn - n_lo] = _sig_diff(gR, nn * c, 0.08, 0.06, rv, 250.0, DR[nn - n_lo])
+        DT = np.empty(n)
         for m in range(m_lo, m_hi + 1):
+            anyT = _sig_diff(gT, m * c, 0.08, 0.06, rv, 250.0, DT)
             for nn in range(n_lo, n_hi + 1):
                 if not is_centre(nn, m) or member_of(vessels, nv, nn, m):
                     continue
@@ -99,35 +172,42 @@ def distortion_tile(seed, M, a, b, out, stats):
                 if near_ray(seed, M, m, 5):
                     k4 *= 0.3
                 sign = 1.0 if uniform(seed, _rng.DIPOLE_SIGN, nn, m, 0) < 0.5 else -1.0
-                terms += _add_dipole(out, gR, gT, nn * c, m * c, 0.08, 0.06, k3, k4, sign,
-                                     rv, 250.0, 4.0 * k3 / 0.06)
+                terms += _add_separable(uv, gR, gT, nn * c, m * c, DR[nn - n_lo], DT, anyR[nn - n_lo], anyT,
+                                        0.06, k3, k4, sign, rv, 4.0 * k3 / 0.06, work[2], work[3])
         for v in range(nv):
-            terms += _add_dipole(out, gR, gT, vessels[v, 0] * c, vessels[v, 1] * c,
-                                 0.06, 0.055, 2.0, 15.0 * amp, 1.0, rv, 250.0, 4.0 * 2.0 / 0.055)
+            terms += _add_dipole(uv, gR, gT, vessels[v, 0] * c, vessels[v, 1] * c,
+                                 0.06, 0.055, 2.0, 15.0 * amp, 1.0, rv, 250.0, 4.0 * 2.0 / 0.055, work)
         # Rare large-scale dipoles: support ±1200 reference voxels.
         if M[LARGE_P] > 0.0:
-            halo = 1200.0 * rv
-            for m in range(np.int64(math.floor((gT[0] - halo) / c)),
-                           np.int64(math.ceil((gT[n - 1] + halo) / c)) + 1):
-                for nn in range(np.int64(math.floor((gR[0] - halo) / c)),
-                                np.int64(math.ceil((gR[n - 1] + halo) / c)) + 1):
-                    if not is_centre(nn, m) or uniform(seed, _rng.LARGE_DIPOLE, nn, m, 0) >= M[LARGE_P]:
-                        continue
-                    k3 = 1.5 * (1.0 + uniform(seed, _rng.LARGE_DIPOLE, nn, m, 1))
-                    k4 = 0.5 * (1.0 + uniform(seed, _rng.LARGE_DIPOLE, nn, m, 2)) * amp
-                    sign = 1.0 if uniform(seed, _rng.LARGE_DIPOLE, nn, m, 3) < 0.5 else -1.0
-                    terms += _add_dipole(out, gR, gT, nn * c, m * c, 0.01, 0.008, k3, k4, sign,
-                                         rv, 1200.0, 3.0 * k3 / 0.008)
+            n0, n1, m0, m1 = large_range(M, a, b)
+            if large_box[0] > n0 or large_box[1] < n1 or large_box[2] > m0 or large_box[3] < m1:
+                raise ValueError("the large dipoles given do not cover the tile's range")
+            for q in range(large.shape[0]):
+                nn, m = large[q, 0], large[q, 1]
+                if nn < n0 or nn > n1 or m < m0 or m > m1:
+                    continue
+                k3 = 1.5 * (1.0 + uniform(seed, _rng.LARGE_DIPOLE, nn, m, 1))
+                k4 = 0.5 * (1.0 + uniform(seed, _rng.LARGE_DIPOLE, nn, m, 2)) * amp
+                sign = 1.0 if uniform(seed, _rng.LARGE_DIPOLE, nn, m, 3) < 0.5 else -1.0
+                terms += _add_dipole(uv, gR, gT, nn * c, m * c, 0.01, 0.008, k3, k4, sign,
+                                     rv, 1200.0, 3.0 * k3 / 0.008, work)
     # Stationary global bend of the radial files (random phases).
     A = M[BEND_A]
     if A > 0.0:
         lam = M[BEND_WL]
         ph1 = 2.0 * math.pi * uniform(seed, _rng.GLOBAL_BEND, 0, 0, 0)
         ph2 = 2.0 * math.pi * uniform(seed, _rng.GLOBAL_BEND, 0, 0, 1)
+        for i in range(n):  # each a function of one coordinate: once per grid line
+            work[0, i] = A * math.sin(2.0 * math.pi * gR[i] / lam + ph1)
+            work[1, i] = 0.5 * A * math.sin(2.0 * math.pi * gT[i] / (1.618 * lam) + ph2)
         for i in range(n):
             for j in range(n):
-                out[i, j, 1] += A * math.sin(2.0 * math.pi * gR[i] / lam + ph1)
-                out[i, j, 0] += 0.5 * A * math.sin(2.0 * math.pi * gT[j] / (1.618 * lam) + ph2)
+                uv[1, i, j] += work[0, i]
+                uv[0, i, j] += work[1, j]
+    for i in range(n):
+        for j in range(n):
+            out[i, j, 0] = uv[0, i, j]
+            out[i, j, 1] = uv[1, i, j]
     stats[ST_DIPOLES] += terms
     stats[ST_TILES] += 1
 

@@ -16,7 +16,7 @@ import numpy as np
 from ..params import Grid, WoodParams
 from . import _constants as K
 from ._block import fill_block
-from ._distortion import distortion_tile
+from ._distortion import distortion_tile, large_dipoles_in, large_range
 from ._vessels import vessels_in_region
 from .. import rng as _rng
 
@@ -90,17 +90,50 @@ def _tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.nda
     M = np.frombuffer(M_bytes, dtype=np.float64)
     out = np.empty((K.TILE + 1, K.TILE + 1, 2))
     stats = np.zeros(N_STATS, np.int64)
-    distortion_tile(np.uint64(seed), M, a, b, out, stats)
+    box = np.array(large_range(M, a, b), np.int64)
+    large = (_large_dipoles(seed, M_bytes, *box) if M[K.LARGE_P] > 0.0 and M[K.DIST] > 0.0
+             else np.empty((0, 2), np.int64))
+    distortion_tile(np.uint64(seed), M, a, b, out, stats, large, box)
     out.setflags(write=False)
     return out, stats
 
 
+LARGE_BLOCK = 128  # nodes per side of a block whose large-scale dipoles are found once
+
+
+@functools.lru_cache(maxsize=1024)
+def _large_block(seed: int, M_bytes: bytes, i: int, j: int) -> np.ndarray:
+    """The large-scale dipoles of node block (i, j) (LARGE_BLOCK² nodes), by m then nn."""
+    M = np.frombuffer(M_bytes, dtype=np.float64)
+    out = np.empty((LARGE_BLOCK * LARGE_BLOCK, 2), np.int64)
+    B = LARGE_BLOCK
+    k = large_dipoles_in(np.uint64(seed), M, i * B, i * B + B - 1, j * B, j * B + B - 1, out)
+    return out[:k].copy()
+
+
+def _large_dipoles(seed: int, M_bytes: bytes, n_lo: int, n_hi: int, m_lo: int, m_hi: int) -> np.ndarray:
+    """The large-scale dipoles of nodes [n_lo, n_hi] × [m_lo, m_hi], by m then nn: the order a
+    scan of those nodes finds them in (a tile's sum adds them in it), from the cached blocks
+    (a tile's range spans 180 nodes for birch; its neighbours' share most of it)."""
+    B = LARGE_BLOCK
+    parts = [_large_block(seed, M_bytes, i, j) for i in range(n_lo // B, n_hi // B + 1)
+             for j in range(m_lo // B, m_hi // B + 1)]
+    found = np.concatenate(parts) if parts else np.empty((0, 2), np.int64)
+    keep = (found[:, 0] >= n_lo) & (found[:, 0] <= n_hi) & (found[:, 1] >= m_lo) & (found[:, 1] <= m_hi)
+    found = found[keep]
+    return np.ascontiguousarray(found[np.lexsort((found[:, 0], found[:, 1]))])
+
+
+def tile_range(M, r_lo, r_hi, t_lo, t_hi) -> tuple[int, int, int, int]:
+    """(a0, a1, b0, b1): the distortion tiles a0..a1 (along R) × b0..b1 (along T) covering
+    [r_lo, r_hi] × [t_lo, t_hi] µm."""
+    span = K.TILE * M[K.PITCH] / K.GRID_PER_PITCH
+    return math.floor(r_lo / span), math.floor(r_hi / span), math.floor(t_lo / span), math.floor(t_hi / span)
+
+
 def _patch(seed, M, r_lo, r_hi, t_lo, t_hi, stats):
     """Distortion grid covering [r_lo, r_hi] × [t_lo, t_hi] µm, assembled from cached tiles."""
-    G = M[K.PITCH] / K.GRID_PER_PITCH
-    span = K.TILE * G
-    a0, a1 = math.floor(r_lo / span), math.floor(r_hi / span)
-    b0, b1 = math.floor(t_lo / span), math.floor(t_hi / span)
+    a0, a1, b0, b1 = tile_range(M, r_lo, r_hi, t_lo, t_hi)
     patch = np.empty(((a1 - a0 + 1) * K.TILE + 1, (b1 - b0 + 1) * K.TILE + 1, 2))
     key = M.tobytes()
     for a in range(a0, a1 + 1):

@@ -5,12 +5,13 @@ by bucket; and the phase at many points."""
 
 import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
 
 from ._surface_cells import new_cache
-from .model import N_STATS, _patch, _plies, _tile, model_constants
+from .model import N_STATS, _patch, _plies, _tile, model_constants, tile_range
 from ._surface_rows import MAX_PRIMS, N_COLS, VBUCKET, VESSEL_REACH, rates
 from .surface import evaluate_at
 
@@ -52,12 +53,23 @@ def _patch_lipschitz(seed, M, gi0: int, gj0: int, shape, G: float) -> np.ndarray
     return out
 
 
-def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_range=None) -> dict:
+def _warm_tiles(seed, M, tiles, G: float, threads: int) -> None:
+    """Compute the distortion tiles ``tiles`` [(a, b)] and their pull-back bounds into their caches
+    on ``threads`` threads (the tile kernel releases the GIL); the same values as one by one."""
+    if threads > 1 and len(tiles) > 1:
+        key = M.tobytes()
+        with ThreadPoolExecutor(min(threads, len(tiles))) as pool:
+            list(pool.map(lambda ab: _tile_lipschitz(int(seed), key, ab[0], ab[1], G), tiles))
+
+
+def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_range=None, *,
+                   threads: int = 1) -> dict:
     """What :func:`evaluate` needs for the slab T ∈ [0, thickness] (or its part ``t_range``) over
     R ∈ r_range, L ∈ l_range [µm]: per ply its placement, seed, distortion grid (assembled from the
-    generator's cached tiles), pull-back bound and vessels; arrays padded to the largest ply.
-    Every ply of the slab is listed (a point's rows name the plies around it), each with its grid
-    over the part of ``t_range`` it holds (none: a point there is outside the region)."""
+    generator's cached tiles, computed on ``threads`` threads), pull-back bound and vessels; arrays
+    padded to the largest ply.  Every ply of the slab is listed (a point's rows name the plies around
+    it), each with its grid over the part of ``t_range`` it holds (none: a point there is outside the
+    region)."""
     from . import _constants as K
     from ._vessels import vessels_in_region
 
@@ -74,6 +86,9 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_r
         tt_lo, tt_hi = max(t0, 0.0, t_range[0]) + oT, min(t1, thickness_um, t_range[1]) + oT
         tt_hi = max(tt_hi, tt_lo)
         pseed = np.uint64(ply_seed)
+        a0, a1, b0, b1 = tile_range(M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0)
+        # the patch's tiles and their neighbours (the pull-back bounds read them)
+        _warm_tiles(pseed, M, [(a, b) for a in range(a0 - 1, a1 + 2) for b in range(b0 - 1, b1 + 2)], G, threads)
         patch, gi0, gj0 = _patch(pseed, M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0, stats)
         dmax = float(np.abs(patch).max())
         box = (math.floor((r_lo - dmax) / c) - 2, math.ceil((r_hi + dmax) / c) + 2,

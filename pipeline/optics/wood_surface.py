@@ -62,7 +62,7 @@ class WoodSurface:
 
     def _box(self, r: tuple, l: tuple, t: tuple | None = None) -> tuple:
         self.regions += 1
-        return context_tuple(region_context(self.params, self.seed, self.thickness_um, r, l, t))
+        return context_tuple(region_context(self.params, self.seed, self.thickness_um, r, l, t, threads=self.threads))
 
     def _regions(self, todo, start, stop, heading, ahead, base) -> list:
         """Regions for the rays ``todo`` that left theirs: rays that stopped in one cube of 4·``base``
