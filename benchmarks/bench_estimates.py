@@ -56,10 +56,10 @@ CASES = {
     "study-table1-2-quick": ("paper", ["study", str(ROOT / "studies/table1/study-2.yaml"), "--scale", "quick",
                                        "--workers", "2", "--cache", "{tmp}/cache", "--results", "{tmp}/results"],
                              ["cache", "results"]),
-    "camera-small": ("small", ["camera", str(ROOT / "studies/camera/figure5.yaml"), "--scale", "small",
+    "camera-small": ("small", ["camera", str(ROOT / "studies/camera/figure5.yaml"), "--scale", "small", "--method", "fast",
                                "--workers", "2", "--cache", "{tmp}/cache", "--results", "{tmp}/results"],
                      ["cache", "results"]),
-    "camera-quick": ("paper", ["camera", str(ROOT / "studies/camera/figure5.yaml"), "--scale", "quick",
+    "camera-quick": ("paper", ["camera", str(ROOT / "studies/camera/figure5.yaml"), "--scale", "quick", "--method", "fast",
                                "--cache", "{tmp}/cache", "--results", "{tmp}/results"], ["cache", "results"]),
 }
 

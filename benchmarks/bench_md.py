@@ -164,11 +164,17 @@ def render(doc: dict) -> str:
     c = _get(doc, "camera", "figure5")
     md += ["", "## Camera (Figure 5)", ""]
     if c:
-        md.append(f"Scale {c['scale']}: three images and their control cold {c['cold_s']} s "
-                  f"({c['rays_per_s_cold']:,} camera rays/s), warm {c['warm_s']} s; wood generated for "
-                  f"{100 * c['fraction_of_sheet']:.0f} % of the sheet; worker peak RSS {c['peak_rss_mb_workers']} MiB.")
+        md.append(f"With `fast` on 0.5 µm voxels (`make camera-fast`), scale {c['scale']}: three images and their "
+                  f"control cold {c['cold_s']} s ({c['rays_per_s_cold']:,} camera rays/s), warm {c['warm_s']} s; "
+                  f"wood generated for {100 * c['fraction_of_sheet']:.0f} % of the sheet; worker peak RSS "
+                  f"{c['peak_rss_mb_workers']} MiB.")
     else:
         md.append("Not run (`make bench-camera`).")
+    x = _get(doc, "camera", "figure5_exact")
+    if x:
+        md += ["", f"With `exact` (the committed images, `make camera SCALE=paper YES=1`): {x['wall_s'] / 60:.0f} min "
+               f"on {x['cores']} cores for the {x['images']} images, {x['camera_rays']:,} camera rays and "
+               f"{x['interfaces']:.3g} interfaces ({x['how']})."]
     return "\n".join(md) + "\n"
 
 

@@ -363,7 +363,8 @@ def plot_camera(ds, path: Path) -> Path:
             ax.tick_params(labelsize=6)
         axes[0, k].set_ylabel("y (µm)", fontsize=6)
         axes[1, k].set_ylabel("y (µm)", fontsize=6)
-    fig.suptitle(f"{ds.attrs['title']} ({ds.attrs['samples_per_pixel']} aperture samples per pixel)",
+    fig.suptitle(f"{ds.attrs['title']} ({ds.attrs['samples_per_pixel']} aperture samples per pixel, "
+                 f"traced with {ds.attrs.get('tracing_method', 'fast')})",
                  fontsize=9)
     fig.tight_layout(h_pad=2.0)
     return _save(fig, path)
