@@ -10,6 +10,9 @@ from pathlib import Path
 from .params import ParameterError
 
 CONNECT_TIMEOUT = "5s"  # a scheduler that does not answer by then is unreachable
+# A local cluster whose last worker died and was not restarted fails its waiting tasks after this
+# (a local worker starts in seconds), instead of waiting for ever.
+NO_WORKERS_TIMEOUT = "60s"
 
 # glibc settings of the local cluster's worker processes, over Dask's own.
 # Dask sets the trim threshold to 64 KiB, which also freezes the mmap
@@ -92,7 +95,9 @@ def graph_client(command: str, *, workers: int | None = None, threads: int | Non
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC}
     # A worker near its memory limit is not paused: twray's tasks hold no data Dask could spill, so
     # a paused worker would wait for ever; past the limit the nanny restarts it and the task is retried.
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ, "distributed.worker.memory.pause": False}):
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ, "distributed.worker.memory.pause": False,
+                          "distributed.scheduler.no-workers-timeout":
+                              dask.config.get("distributed.scheduler.no-workers-timeout") or NO_WORKERS_TIMEOUT}):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True,
                                **({"memory_limit": memory} if memory is not None else {}))
     return Client(cluster), cluster

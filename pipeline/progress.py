@@ -18,6 +18,7 @@ def _every_s() -> float:
 
 
 PROGRESS_EVERY_S = _every_s()
+POLL_S = 1.0  # how often a followed run looks for a failed task
 
 
 def mode(quiet: bool) -> str:
@@ -66,15 +67,18 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
     keys = list(keys)
     seen: set = set()
     done_keys: set = set()
-    t0 = time.perf_counter()
+    t0 = last = time.perf_counter()
     while True:
         try:
-            wait(futures, timeout=every_s)
-            finished = True
-        except TimeoutError:
-            finished = False
-        if finished:
+            wait(futures, timeout=min(every_s, POLL_S))
             break
+        except TimeoutError:
+            pass
+        if any(f.status == "error" for f in futures):
+            return  # a failed task ends the run now, as gathering would; no "all done" line
+        if time.perf_counter() - last < every_s:
+            continue
+        last = time.perf_counter()
         held, ended = client.run_on_scheduler(_pending, keys=keys)
         # A key the scheduler has not held yet (a large graph is still arriving) is to do; one
         # that finished, or that it held and has dropped (its result used and released), is done.
@@ -82,7 +86,7 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
         done_keys.update(seen.difference(held))
         seen.update(held)
         done = len(done_keys)
-        print(line(label, done, len(keys), time.perf_counter() - t0), file=sys.stderr, flush=True)
+        print(line(label, done, len(keys), last - t0), file=sys.stderr, flush=True)
     print(line(label, len(keys), len(keys), time.perf_counter() - t0), file=sys.stderr, flush=True)
 
 

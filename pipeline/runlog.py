@@ -137,12 +137,16 @@ def task(fn):
     return run
 
 
+# Dask's errors for a task that lost its workers: killed while running it, or none left to run it.
+WORKER_LOST = ("KilledWorker", "NoWorkerError", "NoValidWorkerError")
+
+
 def task_key(exc: BaseException):
     """The task key :func:`note_task` or Dask's KilledWorker gives ``exc``, or None."""
     for note in getattr(exc, "__notes__", ()):
         if note.startswith(TASK_NOTE):
             return note[len(TASK_NOTE):]
-    if type(exc).__name__ == "KilledWorker":
+    if type(exc).__name__ in WORKER_LOST:
         return getattr(exc, "task", None) or (exc.args[0] if exc.args else None)
     return None
 
@@ -173,6 +177,10 @@ def task_failure(exc: BaseException, labels: dict) -> RunFailed | BaseException:
     if type(exc).__name__ == "KilledWorker":
         line = (f"a worker died running {what} (killed, or over its memory limit): run again (finished entries "
                 "are kept) with fewer --workers or more memory per worker (--memory-limit)")
+    elif type(exc).__name__ in WORKER_LOST:
+        line = (f"no worker was left to run {what} (one died and none took its place within "
+                f"{getattr(exc, 'timeout', 0):g} s): run again (finished entries are kept); if it recurs, "
+                "give each worker more memory (--memory-limit)")
     elif isinstance(exc, MemoryError):
         line = f"out of memory running {what}: run again with fewer --workers or more memory per worker"
     elif isinstance(exc, OSError):

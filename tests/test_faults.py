@@ -4,6 +4,7 @@ worker killed mid-task, a worker over its memory limit.  After each, a rerun giv
 import os
 import signal
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -125,12 +126,46 @@ def test_a_worker_killed_mid_task_is_replaced_and_the_numbers_are_the_same(tmp_p
 
 
 def test_a_worker_over_its_memory_limit_is_one_line_and_the_rerun_is_whole(tmp_path, monkeypatch, capsys, clean):
+    import dask
+    import distributed  # noqa: F401  (its configuration loaded before a part of it is set)
+
     path = study(tmp_path)
     monkeypatch.setenv(FAULT_MEMORY_ENV, "1500")
-    assert main(args(path, tmp_path, "--memory-limit", "1GB")) == 1
+    # One death gives up on a task (Dask's default retries it on three more workers): the line is
+    # the same, with a quarter of the restarts.
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        assert main(args(path, tmp_path, "--memory-limit", "1GB")) == 1
     err = capsys.readouterr().err
     assert_one_line(err, "a worker died running faults delta_ri=", "over its memory limit", "--memory-limit")
     assert_nothing_half_written(tmp_path, capsys)
     monkeypatch.delenv(FAULT_MEMORY_ENV)
     assert main(args(path, tmp_path, "--memory-limit", "1GB")) == 0
     assert_same(tmp_path, clean["exact"])
+
+
+def test_a_local_cluster_left_without_workers_fails_in_one_line_instead_of_waiting(tmp_path, capsys):
+    import dask
+    import distributed  # noqa: F401  (its configuration loaded before a part of it is set)
+
+    from pipeline.cluster import graph_client
+    from pipeline.runlog import RunFailed
+    from pipeline.study.graph import compute
+    from pipeline.study.plan import plan_study
+    from pipeline.study.spec import load_study
+
+    st = load_study(study(tmp_path), scale="small")
+    with dask.config.set({"distributed.scheduler.no-workers-timeout": "1s"}):
+        client, cluster = graph_client("study", workers=1, threads=1)
+    with cluster, client:
+        cluster.scale(0)  # the last worker gone, none to take its place (as when a nanny cannot restart it)
+        deadline = time.monotonic() + 30
+        while client.scheduler_info()["workers"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        t0 = time.monotonic()
+        with pytest.raises(RunFailed) as failed:
+            compute([plan_study(st, tmp_path / "c")], client, progress="lines")
+        assert time.monotonic() - t0 < 30
+    line = str(failed.value)
+    assert line.startswith("no worker was left to run faults delta_ri=") and "within 1 s" in line, line
+    assert "--memory-limit" in line and "traceback in " in line and "\n" not in line
+    assert not [p for p in tmp_path.joinpath("c").rglob("*") if p.is_file() and "logs" not in p.parts]  # nothing ran
