@@ -140,23 +140,27 @@ def test_following_a_cluster_prints_lines_while_tasks_run_and_all_of_them_at_the
         client.gather(futures)
 
 
+_RELEASE = threading.Event()  # module-level: the tasks below are pickled by reference
+
+
+def _held():
+    _RELEASE.wait(30.0)
+
+
+def _broken():
+    raise ValueError("a broken scene")
+
+
 def test_following_a_cluster_returns_when_a_task_fails_without_waiting_for_the_others(capsys):
     from distributed import Client
 
-    release = threading.Event()
-
-    def slow():
-        release.wait(30.0)
-
-    def fail():
-        raise ValueError("a broken scene")
-
+    _RELEASE.clear()
     with Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as client:
-        jobs = [dask.delayed(slow)(dask_key_name="slow"), dask.delayed(fail)(dask_key_name="bad")]
+        jobs = [dask.delayed(_held)(dask_key_name="slow"), dask.delayed(_broken)(dask_key_name="bad")]
         futures = client.compute(jobs)
         t0 = time.perf_counter()
         follow(client, futures, graph_keys(jobs), "trace", "lines", every_s=60.0)
         assert time.perf_counter() - t0 < 10  # not the 30 s of the other task
         assert futures[1].status == "error" and not futures[0].done()
         assert "tasks done" not in capsys.readouterr().err  # no line saying all is done
-        release.set()
+        _RELEASE.set()
