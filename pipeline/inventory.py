@@ -2,7 +2,8 @@
 
 The cache (``results/cache`` by default) has one folder per stage:
 ``micro/<key>.zarr`` (wood chunk stores), ``rays/<key>.npz``,
-``summary/<key>.json``, ``pool/<key>.json`` and ``camera/<key>.npz``.  Every entry is named by
+``summary/<key>.json``, ``pool/<key>.json``, ``camera/<key>.npz`` and, for an image not yet
+whole, ``camera-rows/<key>.npz`` (its finished blocks of rows).  Every entry is named by
 the key of what produced it and can say what that was (its record,
 :func:`pipeline.cache.entry_record`; a wood store's attributes).
 """
@@ -17,7 +18,8 @@ from pathlib import Path
 
 from .cache import cache_key, check_json, check_npz, entry_record, is_leftover
 
-STAGES = {"micro": ".zarr", "rays": ".npz", "summary": ".json", "pool": ".json", "camera": ".npz"}
+STAGES = {"micro": ".zarr", "rays": ".npz", "summary": ".json", "pool": ".json", "camera": ".npz",
+          "camera-rows": ".npz"}
 
 
 @dataclass
@@ -71,6 +73,10 @@ def _about(stage: str, path: Path) -> str:
         cam = record.get("camera", {})
         return f"image {cam.get('pixels')} px, {'with' if record.get('sheet') else 'without'} sheet, " \
                f"tracer {record.get('tracer')}"
+    if stage == "camera-rows":
+        image = record.get("image")
+        lo, hi = record.get("rows", ["?", "?"])
+        return f"rows {lo}-{hi} of camera image {cache_key(image)[:12] if isinstance(image, dict) else '?'}"
     return ""
 
 
@@ -105,7 +111,7 @@ def verify(entry: Entry) -> list[tuple[Path, str]]:
         return [(entry.path, "left by an interrupted run")]
     if entry.stage == "micro":
         return _verify_wood(entry)
-    if entry.stage in ("rays", "camera"):
+    if entry.stage in ("rays", "camera", "camera-rows"):
         why = check_npz(entry.path, entry.key)[1]
     elif entry.stage in ("summary", "pool"):
         why = check_json(entry.path, entry.key)[1]
@@ -157,7 +163,7 @@ def remove(path: Path) -> None:
 
 def keys_in_use(files, scales, cache) -> set:
     """The keys of every entry the study and camera files need at ``scales``."""
-    from .camera.run import plan_camera
+    from .camera.run import plan_blocks, plan_camera
     from .camera.scene import load_camera
     from .optics.settings import traced_voxel_um
     from .params import ParameterError
@@ -177,6 +183,8 @@ def keys_in_use(files, scales, cache) -> set:
                     raise study_error from None
                 for e in entries:
                     keys.add(e.key)
+                    if not e.cached:  # the row blocks of an unfinished image
+                        keys.update(b.key for b in plan_blocks(e, cache))
                     sh = e.config.sheet
                     if sh is not None and e.config.settings.medium_kind == "voxels":
                         keys.add(cache_key(wood_record(sh.wood, sh.seed,

@@ -256,16 +256,17 @@ def camera_footprint_um(camera, sheet) -> tuple[float, float]:
     return min(along_r, sheet.width_um), min(along_l, sheet.length_um)
 
 
-def camera_estimate(images) -> Estimate:
+def camera_estimate(images, rows=None) -> Estimate:
     """Images through a sheet, their start not counted: every pixel's aperture samples traced, the
-    part of the sheet's wood the rays reach generated once and kept on disk."""
+    part of the sheet's wood the rays reach generated once and kept on disk.  ``rows``: per image,
+    the sensor rows left to render (default all of them)."""
     from .optics.settings import traced_voxel_um
 
     est = Estimate()
     woods = {}
-    for cfg in images:
+    for q, cfg in enumerate(images):
         cam, sh = cfg.camera, cfg.sheet
-        rays = cam.pixels[0] * cam.pixels[1] * cam.samples
+        rays = (cam.pixels[0] if rows is None else rows[q]) * cam.pixels[1] * cam.samples
         if sh is None:
             est = est + Estimate(rays * 1e-6, BASE_MEMORY, 0.0)
             continue

@@ -181,7 +181,8 @@ def test_camera_file_renders_on_a_cluster_and_caches_its_images(tmp_path, client
     cache = tmp_path / "cache"
     entries = plan_camera(study, cache)
     report = compute(entries, client, cache, rows_per_task=2)
-    assert report == {"images": 2, "row_tasks": 10, "rays": 2 * 9 * 11 * 40}
+    assert report == {"images": 2, "row_tasks": 10, "rows_cached": 0, "rays": 2 * 9 * 11 * 40}
+    assert not list((cache / "camera-rows").glob("*"))  # the images hold their rows now
     entries = plan_camera(study, cache)
     assert all(e.cached for e in entries)
     assert compute(entries, client, cache)["images"] == 0
@@ -207,6 +208,41 @@ def test_camera_file_renders_on_a_cluster_and_caches_its_images(tmp_path, client
     with Image.open(results / "cam-near.png") as im:
         assert im.size == (11, 9)
     assert (results / "cam-open-object.png").exists() and (results / "cam.png").exists()
+
+
+def test_an_image_that_stopped_part_way_keeps_its_row_blocks_and_the_rerun_renders_only_the_rest(
+        tmp_path, client):
+    import os
+
+    from pipeline.cache import FAULT_ENV
+    from pipeline.camera.run import plan_blocks
+    from pipeline.runlog import RunFailed
+
+    path = tmp_path / "cam.yaml"
+    path.write_text(CAMERA_FILE)
+    study = load_camera(path)
+    cache = tmp_path / "cache"
+    client.run(lambda: os.environ.update({FAULT_ENV: "camera:0"}))  # the image's own entry cannot be written
+    try:
+        with pytest.raises(RunFailed) as failed:
+            compute(plan_camera(study, cache)[:1], client, cache)  # blocks of 3 rows
+    finally:
+        client.run(lambda: os.environ.pop(FAULT_ENV, None))
+    assert "no space left writing" in str(failed.value) and "/camera/" in str(failed.value)
+    entry = plan_camera(study, cache)[0]
+    assert not entry.cached and not entry.path.exists()
+    blocks = plan_blocks(entry, cache)
+    assert [(b.lo, b.hi) for b in blocks] == [(0, 3), (3, 6), (6, 9)]
+    assert all(b.cached for b in blocks)
+    from pipeline.inventory import keys_in_use
+    assert {b.key for b in blocks} <= keys_in_use([path], ["paper"], cache)  # `cache gc` keeps them
+    blocks[1].path.write_bytes(blocks[1].path.read_bytes()[:-40])  # one damaged: rendered again
+    report = compute([entry], client, cache)
+    assert report == {"images": 1, "row_tasks": 1, "rows_cached": 2, "rays": 3 * 11 * 40}
+    image = load_entry(plan_camera(study, cache)[0])
+    direct = render(study.images[0].camera, study.images[0].sheet, study.images[0].target)
+    assert np.array_equal(image["image"], direct.image) and np.array_equal(image["lost"], direct.lost)
+    assert not list((cache / "camera-rows").glob("*"))
 
 
 @pytest.mark.parametrize("text, needle", [

@@ -22,6 +22,7 @@ RAYS = {"stage": "rays", "range": [0, 500], "micro": "abcdef0123456789abcdef01",
 SUMMARY = {"stage": "summary", "rays": ["k1", "k2"], "n_boot": 200}
 POOL = {"stage": "pool", "summaries": ["s1", "s2", "s3"], "n_boot": 100}
 CAMERA = {"stage": "camera", "camera": {"pixels": [51, 51]}, "sheet": {"thickness_um": 500}, "tracer": 7}
+ROWS = {"image": CAMERA, "rows": [0, 3]}  # a block of rows of an image not yet whole
 OLD = 0  # an mtime long past: what another host left is a leftover only once it is a day old
 
 
@@ -47,6 +48,7 @@ def cache(tmp_path, wood):
     write_json(c / "summary" / f"{cache_key(SUMMARY)}.json", SUMMARY, {"fwhm_r_deg": 5.52})
     write_json(c / "pool" / f"{cache_key(POOL)}.json", POOL, {"haze": 0.8})
     write_npz(c / "camera" / f"{cache_key(CAMERA)}.npz", CAMERA, {"image": np.ones((51, 51), np.float32)})
+    write_npz(c / "camera-rows" / f"{cache_key(ROWS)}.npz", ROWS, {"image": np.ones((3, 51))})
     return c
 
 
@@ -65,9 +67,10 @@ def test_entries_are_listed_by_stage_with_their_size_and_provenance(cache, wood)
     assert e["summary"].about == "summary of 2 ray shards, 200 bootstrap draws"
     assert e["pool"].about == "3 wood realisations pooled, 100 bootstrap draws"
     assert e["camera"].about == "image [51, 51] px, with sheet, tracer 7"
+    assert e["camera-rows"].about == f"rows 0-3 of camera image {cache_key(CAMERA)[:12]}"
     # A file's size is its bytes; a wood store's, all the files in it.
     assert e["micro"].size == _files_size(e["micro"].path) > 2000
-    for stage in ("rays", "summary", "pool", "camera"):
+    for stage in ("rays", "summary", "pool", "camera", "camera-rows"):
         assert e[stage].size == e[stage].path.stat().st_size > 0
     assert all(verify(x) == [] for x in entries)
 
@@ -170,7 +173,7 @@ def test_removing_entries_takes_files_and_whole_stores_and_tolerates_what_is_gon
     remove(entries["rays"].path)
     remove(entries["rays"].path)  # already gone: nothing to do
     assert not entries["micro"].path.exists() and not entries["rays"].path.exists()
-    assert [e.stage for e in scan(cache)] == ["summary", "pool", "camera"]
+    assert [e.stage for e in scan(cache)] == ["summary", "pool", "camera", "camera-rows"]
     assert list((cache / "micro").iterdir()) == []
 
 

@@ -8,7 +8,10 @@ only the chunks that camera rays visit are generated, once, and a sheet of
 the Table 1 base wood reuses the chunks the studies made.  A finished image
 is a cache entry ``cache/camera/<key>.npz`` whose key hashes the camera, the
 sheet, the object raster and the trace settings, verified when read
-(:mod:`pipeline.cache`); a rerun renders nothing.
+(:mod:`pipeline.cache`); a rerun renders nothing.  Until its image is
+whole, each finished block of rows is an entry ``cache/camera-rows/<key>.npz``
+(the image's record and the rows): a run that stops part-way keeps them, the
+next renders only the rest, and the image, once written, replaces them.
 
 Outputs under ``results/camera/``: ``<file>.zarr`` (an xarray Dataset of the
 images, their ideal thin-lens images and lost-sample counts),
@@ -18,6 +21,8 @@ figure of the objects and the images side by side).
 """
 
 from __future__ import annotations
+
+import contextlib
 
 import dataclasses
 import json
@@ -37,6 +42,7 @@ from .lens import RowsImage, ideal_image, render_rows
 from .scene import CameraStudy, ImageConfig
 
 ROWS_PER_TASK = 3
+ROWS_STAGE = "camera-rows"  # the cache folder of an unfinished image's row blocks
 
 
 @dataclass
@@ -61,6 +67,33 @@ def image_record(cfg: ImageConfig) -> dict:
             "sheet": sheet, "object": cfg.target.digest(), "settings": cfg.settings.to_dict()}
 
 
+@dataclass
+class Block:
+    """Sensor rows [lo, hi) of one image, and their cache entry."""
+    lo: int
+    hi: int
+    key: str
+    path: Path
+    cached: bool
+
+
+def block_record(cfg: ImageConfig, lo: int, hi: int) -> dict:
+    """What a block of rows depends on: its image and its rows."""
+    return {"image": image_record(cfg), "rows": [int(lo), int(hi)]}
+
+
+def plan_blocks(entry: Entry, cache_dir, rows_per_task: int = ROWS_PER_TASK) -> list[Block]:
+    """The row blocks of ``entry``'s image, each cached or to render."""
+    ny = entry.config.camera.pixels[0]
+    out = []
+    for lo in range(0, ny, rows_per_task):
+        hi = min(lo + rows_per_task, ny)
+        key = cache_key(block_record(entry.config, lo, hi))
+        path = Path(cache_dir) / ROWS_STAGE / f"{key}.npz"
+        out.append(Block(lo, hi, key, path, sound(check_npz, path, key)))
+    return out
+
+
 def plan_camera(study: CameraStudy, cache_dir) -> list[Entry]:
     out = []
     for cfg in study.images:
@@ -72,8 +105,8 @@ def plan_camera(study: CameraStudy, cache_dir) -> list[Entry]:
 
 # ---------------------------------------------------------------------- tasks (run on workers)
 @task
-def render_block(cfg: ImageConfig, lo: int, hi: int, cache_dir: str) -> RowsImage:
-    """Sensor rows [lo, hi) of one image."""
+def render_block(cfg: ImageConfig, lo: int, hi: int, cache_dir: str, path: str) -> RowsImage:
+    """Sensor rows [lo, hi) of one image, kept at ``path`` until the image is whole."""
     from ..optics.media import wood_medium
 
     medium = None
@@ -84,12 +117,27 @@ def render_block(cfg: ImageConfig, lo: int, hi: int, cache_dir: str) -> RowsImag
             store = wood_store(cache_dir, sh.wood, sh.seed, traced_voxel_um(sh.voxel_um, cfg.settings))
         medium = wood_medium(sh.wood, seed=sh.seed, thickness_um=sh.thickness_um, voxel_um=sh.voxel_um,
                              settings=cfg.settings, store=store)
-    return render_rows(cfg.camera, sh, cfg.target, np.arange(lo, hi), settings=cfg.settings, medium=medium)
+    rows = render_rows(cfg.camera, sh, cfg.target, np.arange(lo, hi), settings=cfg.settings, medium=medium)
+    write_npz(Path(path), block_record(cfg, lo, hi),
+              {"image": rows.image, "lost": rows.lost, "interfaces": np.float64(rows.interfaces),
+               "chunks_loaded": np.int64(rows.chunks_loaded)})
+    return rows
 
 
 @task
-def assemble(cfg: ImageConfig, path: str, *blocks: RowsImage) -> dict:
-    """Join the row blocks of an image and store it (atomically) as a cache entry."""
+def load_block(path: str, key: str, lo: int, hi: int) -> RowsImage:
+    """A block of rows an earlier run rendered."""
+    arrays = read_npz(Path(path), key)
+    if arrays is None:
+        raise DamagedEntry(f"cache entry {path} was damaged during the run; run again to recompute it")
+    return RowsImage(np.arange(lo, hi), arrays["image"], arrays["lost"], float(arrays["interfaces"]),
+                     int(arrays["chunks_loaded"]))
+
+
+@task
+def assemble(cfg: ImageConfig, path: str, block_paths: list, *blocks: RowsImage) -> dict:
+    """Join the row blocks of an image, store it (atomically) as a cache entry, and remove the
+    blocks' own entries (the image holds them)."""
     image = np.concatenate([b.image for b in blocks])
     lost = np.concatenate([b.lost for b in blocks])
     rays = image.size * cfg.camera.samples
@@ -97,32 +145,43 @@ def assemble(cfg: ImageConfig, path: str, *blocks: RowsImage) -> dict:
               "interfaces_per_ray": np.float64(sum(b.interfaces for b in blocks) / rays),
               "chunks_loaded": np.int64(sum(b.chunks_loaded for b in blocks))}
     write_npz(Path(path), image_record(cfg), arrays)
+    for p in block_paths:
+        Path(p).unlink(missing_ok=True)
     return {"rays": rays, "chunks_loaded": int(arrays["chunks_loaded"])}
 
 
 def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROWS_PER_TASK,
             progress: str = "off") -> dict:
-    """Render every image of ``entries`` that is not cached, on a ``distributed.Client``."""
+    """Render every image of ``entries`` that is not cached, on a ``distributed.Client``: the
+    row blocks an earlier run finished are read, the others rendered.
+
+    Returns counts: images assembled, row blocks rendered and read, camera rays traced."""
     import dask
 
     tasks = []
-    n_blocks = 0
+    report = {"images": 0, "row_tasks": 0, "rows_cached": 0, "rays": 0}
     labels = {}
     for e in entries:
         if e.cached:
             continue
         labels[f"camera-image-{e.key[:12]}"] = labels[f"camera-config-{e.key[:12]}"] = f"camera image {e.config.name}"
         cfg = dask.delayed(e.config, name=f"camera-config-{e.key[:12]}", traverse=False)
-        ny = e.config.camera.pixels[0]
-        blocks = [dask.delayed(render_block, pure=False)(
-            cfg, lo, min(lo + rows_per_task, ny), str(cache_dir),
-            dask_key_name=f"camera-rows-{e.key[:12]}-{lo}") for lo in range(0, ny, rows_per_task)]
-        n_blocks += len(blocks)
-        labels.update({f"camera-rows-{e.key[:12]}-{lo}": f"camera image {e.config.name}, rows {lo}-"
-                       f"{min(lo + rows_per_task, ny)}" for lo in range(0, ny, rows_per_task)})
+        blocks = []
+        plan = plan_blocks(e, cache_dir, rows_per_task)
+        for b in plan:
+            name = f"camera-rows-{e.key[:12]}-{b.lo}"
+            labels[name] = f"camera image {e.config.name}, rows {b.lo}-{b.hi}"
+            if b.cached:
+                blocks.append(dask.delayed(load_block, pure=False)(str(b.path), b.key, b.lo, b.hi, dask_key_name=name))
+                report["rows_cached"] += 1
+            else:
+                blocks.append(dask.delayed(render_block, pure=False)(cfg, b.lo, b.hi, str(cache_dir), str(b.path),
+                                                                     dask_key_name=name))
+                report["row_tasks"] += 1
+                report["rays"] += (b.hi - b.lo) * e.config.camera.pixels[1] * e.config.camera.samples
         tasks.append(dask.delayed(assemble, pure=False)(
-            cfg, str(e.path), *blocks, dask_key_name=f"camera-image-{e.key[:12]}"))
-    report = {"images": len(tasks), "row_tasks": n_blocks, "rays": 0}
+            cfg, str(e.path), [str(b.path) for b in plan], *blocks, dask_key_name=f"camera-image-{e.key[:12]}"))
+    report["images"] = len(tasks)
     if not tasks:
         return report
     from ..progress import follow, graph_keys
@@ -132,10 +191,11 @@ def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROW
     futures = client.compute(tasks)
     try:
         follow(client, futures, graph_keys(tasks), "twray camera", progress)
-        results = client.gather(futures)
+        client.gather(futures)
     except Exception as exc:
+        with contextlib.suppress(Exception):  # the run is over: the scheduler forgets its tasks (a rerun
+            client.cancel(futures)            # on the same scheduler submits them anew)
         raise task_failure(exc, labels) from exc
-    report["rays"] = int(sum(r["rays"] for r in results))
     return report
 
 

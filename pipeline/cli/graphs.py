@@ -171,7 +171,7 @@ def add_camera(sub):
 
 
 def cmd_camera(args) -> int:
-    from ..camera.run import compute, load_entry, plan_camera, write_outputs
+    from ..camera.run import compute, load_entry, plan_blocks, plan_camera, write_outputs
     from ..camera.scene import load_camera
 
     rows = integer(args.rows_per_task, "rows_per_task", 1)
@@ -185,17 +185,26 @@ def cmd_camera(args) -> int:
     limits.check(started + limits.camera_estimate(study.images), what="`camera`", yes=True, disk_path=args.cache, fit=fit)
     t0 = time.perf_counter()
     entries = plan_camera(study, args.cache)
-    todo = [e.config for e in entries if not e.cached]
-    est = started + limits.camera_estimate(todo)
+    todo = [e for e in entries if not e.cached]
+    blocks = {e.key: plan_blocks(e, args.cache, rows) for e in todo}  # an interrupted run's are kept
+    left = [sum(b.hi - b.lo for b in blocks[e.key] if not b.cached) for e in todo]
+    est = started + limits.camera_estimate([e.config for e in todo], rows=left)
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
         print(f"twray camera: estimate for the {len(todo)} image{'' if len(todo) == 1 else 's'} to render "
               f"(the part of the sheet its rays reach): {est.text()}", file=sys.stderr)
     if args.dry_run:
         for e in entries:
-            print(f"{study.name} {e.config.name}: {'cached' if e.cached else 'to render'} ({e.key[:12]})")
+            done = sum(b.cached for b in blocks.get(e.key, ()))
+            state = "cached" if e.cached else "to render" + (f", {done} of {len(blocks[e.key])} row blocks "
+                                                             "done" if done else "")
+            print(f"{study.name} {e.config.name}: {state} ({e.key[:12]})")
         return 0
     limits.check(est, what="`camera`", yes=args.yes, disk_path=args.cache, fit=fit)
     if not all(e.cached for e in entries):
+        resumed = sum(b.cached for bs in blocks.values() for b in bs)
+        if resumed:
+            print(f"twray camera: {resumed} of {sum(len(bs) for bs in blocks.values())} row blocks were "
+                  "rendered by an earlier run and are read, not rendered", file=sys.stderr)
         with _cluster(args, "camera") as client:
             compute(entries, client, args.cache, rows_per_task=rows, progress=progress_mode(args.quiet))
         entries = plan_camera(study, args.cache)

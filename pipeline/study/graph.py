@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 from dataclasses import dataclass, field
 
 from .plan import Micro, Plan
@@ -112,6 +114,8 @@ def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
         follow(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress)
         results = client.gather(futures)
     except Exception as exc:
+        with contextlib.suppress(Exception):  # the run is over: the scheduler forgets its tasks (a rerun
+            client.cancel(futures)            # on the same scheduler submits them anew)
         raise task_failure(exc, graph.labels) from exc
     n = len(graph.micro)
     report["chunks_generated"] = int(sum(results[:n]) + sum(r["chunks_generated"] for r in results[n:]))
