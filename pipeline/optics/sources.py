@@ -266,7 +266,10 @@ class ChunkCache:
         """A finished cache's buffers of this chunk shape with enough slots, or new ones."""
         with _SPARE_LOCK:
             for q, (bits, masks) in enumerate(_SPARE):
-                if bits.shape[1:] == self._bits_shape and bits.shape[0] >= capacity:
+                # Both shapes: chunks 40 and 64 voxels long along L pack into one word a row,
+                # but their row masks have 3 and 4 segments.
+                if (bits.shape[1:] == self._bits_shape and masks.shape[1:] == self._masks_shape
+                        and bits.shape[0] >= capacity):
                     return _SPARE.pop(q)
         return (np.empty((capacity,) + self._bits_shape, np.uint64),
                 np.empty((capacity,) + self._masks_shape, np.uint64))
