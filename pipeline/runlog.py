@@ -10,6 +10,7 @@ where its traceback is (:func:`task_failure`).
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
@@ -161,6 +162,22 @@ def os_error_line(exc: OSError) -> str:
     if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         return f"cannot write {where} ({exc.strerror}): make {folder} writable or choose another folder"
     return f"{exc.strerror or exc} ({where})"
+
+
+def gather_graph(client, futures, keys, label: str, how: str, labels: dict) -> list:
+    """The results of ``futures`` (computed from graphs of the task ``keys``), followed with
+    progress ``how`` (:func:`pipeline.progress.follow`).  A failed task ends the run: its other
+    tasks are cancelled (a rerun on the same scheduler submits them anew) and the failure is
+    raised as :func:`task_failure`'s one line, named by ``labels``."""
+    from .progress import follow
+
+    try:
+        follow(client, futures, keys, label, how)
+        return client.gather(futures)
+    except Exception as exc:
+        with contextlib.suppress(Exception):
+            client.cancel(futures)
+        raise task_failure(exc, labels) from exc
 
 
 def task_failure(exc: BaseException, labels: dict) -> RunFailed | BaseException:

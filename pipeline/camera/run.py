@@ -22,8 +22,6 @@ figure of the objects and the images side by side).
 
 from __future__ import annotations
 
-import contextlib
-
 import dataclasses
 import json
 from dataclasses import dataclass
@@ -184,18 +182,11 @@ def compute(entries: list[Entry], client, cache_dir, *, rows_per_task: int = ROW
     report["images"] = len(tasks)
     if not tasks:
         return report
-    from ..progress import follow, graph_keys
-
-    from ..runlog import task_failure
+    from ..progress import graph_keys
+    from ..runlog import gather_graph
 
     futures = client.compute(tasks)
-    try:
-        follow(client, futures, graph_keys(tasks), "twray camera", progress)
-        client.gather(futures)
-    except Exception as exc:
-        with contextlib.suppress(Exception):  # the run is over: the scheduler forgets its tasks (a rerun
-            client.cancel(futures)            # on the same scheduler submits them anew)
-        raise task_failure(exc, labels) from exc
+    gather_graph(client, futures, graph_keys(tasks), "twray camera", progress, labels)
     return report
 
 

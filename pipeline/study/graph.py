@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-
 from dataclasses import dataclass, field
 
 from .plan import Micro, Plan
@@ -105,18 +103,12 @@ def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
               "summary_tasks": graph.n_summaries, "pool_tasks": len(graph.summaries), "chunks_generated": 0}
     if not graph.micro and not graph.summaries:
         return report
-    from ..progress import follow, graph_keys
-
-    from ..runlog import task_failure
+    from ..progress import graph_keys
+    from ..runlog import gather_graph
 
     futures = client.compute(graph.micro + graph.summaries)
-    try:
-        follow(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress)
-        results = client.gather(futures)
-    except Exception as exc:
-        with contextlib.suppress(Exception):  # the run is over: the scheduler forgets its tasks (a rerun
-            client.cancel(futures)            # on the same scheduler submits them anew)
-        raise task_failure(exc, graph.labels) from exc
+    results = gather_graph(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress,
+                           graph.labels)
     n = len(graph.micro)
     report["chunks_generated"] = int(sum(results[:n]) + sum(r["chunks_generated"] for r in results[n:]))
     return report
