@@ -143,7 +143,7 @@ WORKER_LOST = ("KilledWorker", "NoWorkerError", "NoValidWorkerError")
 
 
 def task_key(exc: BaseException):
-    """The task key :func:`note_task` or Dask's KilledWorker gives ``exc``, or None."""
+    """The task key :func:`note_task` or one of Dask's :data:`WORKER_LOST` errors gives ``exc``, or None."""
     for note in getattr(exc, "__notes__", ()):
         if note.startswith(TASK_NOTE):
             return note[len(TASK_NOTE):]
