@@ -20,18 +20,29 @@ from ._surface_rows import (P_FACE, P_LUMEN, P_PLATE, P_REACH, P_TIP, P_TIP_END,
 
 CACHE_SLOTS = 1 << 15  # direct-mapped cache of control values and fibre cells (a power of 2)
 NEAR = 16  # the near cache: nodes (n mod NEAR, m mod NEAR) with their four control values at one slice
+# An evaluation's work arrays, views of three flat per-thread arrays (floats, ints, bytes) of the
+# cache: no evaluation allocates, so its kernels compile without Numba's reference counts
+# (``_nrt=False``; a count is an atomic add and a call per array a function receives).  Offsets:
+# :func:`~pipeline.microstructure.surface.evaluate`'s own, live while it calls one of
+# _ellipses, _polygon or _ray_cell, which share the region after them.
+F_RAYS, F_VG, F_VB, F_CALLEE = 0, 112, 304, 880  # rays (16, 7); VG (<= 48, 4); VB (<= 48, 2, 6)
+I_VSEL, I_VL, I_CALLEE = 0, 48, 288  # vsel (48); VL (<= 48, 5)
+N_FLOATS, N_INTS, N_BYTES = F_CALLEE + 1388, I_CALLEE + 18, 272
+NOREF = dict(cache=True, nogil=True, error_model="numpy", _nrt=False)  # the evaluation's kernels
 
 
 def new_cache():
     """Per-thread memo of pure functions of ids (control values of (node, slice), the fibre cell
-    around L): (keys, control values, cell keys, cells, scratch, near keys, near control values).
+    around L) and an evaluation's work arrays: (keys, control values, cell keys, cells, scratch,
+    near keys, near control values, work floats, work ints, work bytes).
     The near cache holds, per node of a small window that moves with the points, the four
     control values its spline reads at one control slice: the nodes of one point, and of the
     next points along a ray, are found there without hashing.  It changes no result."""
     return (np.full((CACHE_SLOTS, 4), np.iinfo(np.int64).min, np.int64), np.empty((CACHE_SLOTS, 3)),
             np.full((CACHE_SLOTS, 3), np.iinfo(np.int64).min, np.int64), np.empty((CACHE_SLOTS, 2)),
             np.empty((4, 3)), np.full((NEAR * NEAR, 4), np.iinfo(np.int64).min, np.int64),
-            np.empty((NEAR * NEAR, 4, 3)))
+            np.empty((NEAR * NEAR, 4, 3)), np.empty(N_FLOATS), np.empty(N_INTS, np.int64),
+            np.empty(N_BYTES, np.uint8))
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
@@ -42,7 +53,7 @@ def _slot(a, b, c, d):
     return np.int64(h & np.uint64(CACHE_SLOTS - 1))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(**NOREF)
 def _near_fill(seed, n, m, k, j, CK, CV, C, NK, NV):
     """Slot j of the near cache: node (n, m)'s control values at slices k - 1 .. k + 2, from the
     large cache or hashed (and kept there)."""
@@ -92,7 +103,7 @@ def node_cached(seed, M, n, m, L, CK, CV, C, NK, NV):
     return n * c + M[JITTER] * c * r, m * c + M[JITTER] * c * t, M[T0] * (1.0 + M[WALLVAR] * w)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(**NOREF)
 def _cell_fill(seed, M, L, n, m, min_len, i, EK, EV):
     """Slot i of the fibre-cell cache: fibre (n, m)'s cell around L."""
     ph = uniform(seed, _rng.FIBRE_END_PHASE, n, m, 0) * M[FLEN]
@@ -156,7 +167,7 @@ def _fibre(seed, M, L, n, m, vessels, nv, NW, have, n0, m0, FErow, FJrow, CK, CV
     return flag, lo, hi, aR, aT, Nt
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(**NOREF)
 def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, want):
     """Fibre lumens: the phase from the four candidates of the point's cell, the rows from the
     lumens that reach the 2 × 2 cells around the point (a ball of half a cell meets no other)."""
@@ -178,16 +189,21 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
         m_last = m_first
     n0 = n_first - 1
     m0 = m_first - 1
-    CK, CV, EK, EV, C, NK, NV = cache
-    NW = np.empty((8, 8, 3))
-    have = np.zeros((8, 8), np.uint8)
-    C4 = np.empty((1, 1, 5, 4))
-    FE4 = np.empty((4, 1, 5))
-    Nt4 = np.empty((4, 1))
-    FJ4 = np.zeros((4, 1, 7))
-    CIJ = np.full((1, 1, 4, 2), -1, np.int64)
-    FE = np.empty(5)
-    FJ = np.zeros(7)
+    CK, CV, EK, EV, C, NK, NV, WF, WI, WU = cache
+    f0 = F_CALLEE
+    NW = WF[f0:f0 + 192].reshape((8, 8, 3))
+    have = WU[0:64].reshape((8, 8))
+    have[:] = 0
+    C4 = WF[f0 + 192:f0 + 212].reshape((1, 1, 5, 4))
+    FE4 = WF[f0 + 212:f0 + 232].reshape((4, 1, 5))
+    Nt4 = WF[f0 + 232:f0 + 236].reshape((4, 1))
+    FJ4 = WF[f0 + 236:f0 + 264].reshape((4, 1, 7))
+    FJ4[:] = 0.0
+    CIJ = WI[I_CALLEE:I_CALLEE + 8].reshape((1, 1, 4, 2))
+    CIJ[:] = -1
+    FE = WF[f0 + 264:f0 + 269]
+    FJ = WF[f0 + 269:f0 + 276]
+    FJ[:] = 0.0
     rn = rt[R_NODE]
     rw = rt[R_WALL]
     plate = 0.5 * M[PLATE]
@@ -254,7 +270,7 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
     return np.uint8(0) if inside else np.uint8(1), np_
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(**NOREF)
 def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
     """Balsa: the generator's Voronoi test on the nine candidate centres, and their faces."""
     c = M[PITCH]
@@ -264,15 +280,22 @@ def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
     jc = np.int64(round(w / 2.0))
     n_lo = np.int64(math.floor(u)) - 6
     m_lo = 2 * (jc - 1) - 1
-    CK, CV, EK, EV, C, NK, NV = cache
-    FE = np.zeros((14, 8, 5))
-    FF = np.zeros((14, 8), np.uint8)
-    Nt = np.zeros((14, 8))
-    LO = np.full((14, 8, 2), np.nan)
-    NW = np.empty((16, 10, 3))
-    have = np.zeros((16, 10), np.uint8)
-    FJ = np.zeros(7)
-    FErow = np.empty(5)
+    CK, CV, EK, EV, C, NK, NV, WF, WI, WU = cache
+    f0 = F_CALLEE
+    FE = WF[f0:f0 + 560].reshape((14, 8, 5))
+    FE[:] = 0.0
+    FF = WU[0:112].reshape((14, 8))
+    FF[:] = 0
+    Nt = WF[f0 + 560:f0 + 672].reshape((14, 8))
+    Nt[:] = 0.0
+    LO = WF[f0 + 672:f0 + 896].reshape((14, 8, 2))
+    LO[:] = np.nan
+    NW = WF[f0 + 896:f0 + 1376].reshape((16, 10, 3))
+    have = WU[112:272].reshape((16, 10))
+    have[:] = 0
+    FJ = WF[f0 + 1376:f0 + 1383]
+    FJ[:] = 0.0
+    FErow = WF[f0 + 1383:f0 + 1388]
     for j in range(jc - 1, jc + 2):
         m = 2 * j
         par = j % 2
@@ -288,8 +311,8 @@ def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
             Nt[ii, jj] = t
             LO[ii, jj, 0] = lo
             LO[ii, jj, 1] = hi
-    cand_i = np.empty(9, np.int64)
-    cand_j = np.empty(9, np.int64)
+    cand_i = WI[I_CALLEE:I_CALLEE + 9]
+    cand_j = WI[I_CALLEE + 9:I_CALLEE + 18]
     ph = _polygon_phase(pR, sT, u, w, n_lo, m_lo, FE, FF, Nt, cand_i, cand_j)
     # The faces of the nearest centre with its neighbours, and its end planes.
     best = -1

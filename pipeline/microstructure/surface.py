@@ -36,7 +36,8 @@ from ._lattice import chain_interval
 from ._ray_cells import group_span, ray_band_width, ray_cell_phase, ray_group, ray_row, ray_slice_tables
 from ._slice import _squeeze_and_classify, _vessel_phase, add_ray_row, vessel_outline, vessel_walls
 
-from ._surface_cells import _ellipses, _polygon, new_cache, node_cached  # noqa: F401
+from ._surface_cells import (F_CALLEE, F_RAYS, F_VB, F_VG, I_VL, I_VSEL, NOREF, _ellipses, _polygon,  # noqa: F401
+                             new_cache, node_cached)
 
 from ._surface_rows import (INF, MAX_PRIMS, N_COLS, P_BAND, P_FACE, P_LUMEN, P_PLATE, P_PLY, P_RAY_END,  # noqa: F401
                             P_RAY_LUMEN, P_REACH, P_TIP, P_TIP_END, P_VESSEL_IN, P_VESSEL_OUT, P_VESSEL_SHARED,
@@ -45,7 +46,7 @@ from ._surface_rows import (INF, MAX_PRIMS, N_COLS, P_BAND, P_FACE, P_LUMEN, P_P
 put_row = _row  # (P, n, kind, a, b, c, d, g, clearance) -> n + 1: how any surface lists a row for the march
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(**NOREF)
 def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, vbox, vidx, rt, P, cache, want):
     """Phase at the global point (R, T, L) [µm] of one ply, and the primitives near it.
 
@@ -87,7 +88,9 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
     W = ray_band_width(M)
     W2 = 0.5 * W
     lam = M[RSQUEEZE] * M[SCALE]
-    rays = np.empty((16, 7))
+    WF = cache[7]
+    WI = cache[8]
+    rays = WF[F_RAYS:F_RAYS + 112].reshape((16, 7))
     nr = 0
     if M[RAYS] != 0.0:
         reach = W2 + lam + c
@@ -118,14 +121,14 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
         np_ = _row(P, np_, P_REACH, 0, 0, 0, 0, c, c / (lam_p + rt[R_BAND]))
     sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
     if r >= 0:
-        return _ray_cell(seed, M, Ls, pR, sT, rays[r:r + 1], lam_p, rt, P, np_, want[0] > 0.0)
+        return _ray_cell(seed, M, Ls, pR, sT, rays[r:r + 1], lam_p, rt, P, np_, want[0] > 0.0, WF)
     n_fl = np.int64(math.floor(pR * inv_c))
     w_fl = np.int64(math.floor(sT * inv_c))
     if n_fl < vbox[0] or n_fl > vbox[1] or w_fl < vbox[2] or w_fl > vbox[3]:
         return np.uint8(255), 0
     # Vessel clusters with a member near the point, whole and in the generator's order (the
     # clusters listed in the point's bucket of ``vidx`` hold every such cluster).
-    vsel = np.empty(48, np.int64)
+    vsel = WI[I_VSEL:I_VSEL + 48]
     ns = 0
     bshape, bptr, blist = vidx
     b = ((n_fl - vbox[0]) // VBUCKET) * bshape[1] + (w_fl - vbox[2]) // VBUCKET
@@ -140,10 +143,11 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
             for u in range(v, v + size):
                 vsel[ns] = u
                 ns += 1
-    VL = np.empty((max(ns, 1), 5), np.int64)
-    VG = np.empty((max(ns, 1), 4))
-    VB = np.empty((max(ns, 1), 2, 6))
-    CK, CV, _, _, C, NK, NV = cache
+    nq = max(ns, 1)
+    VL = WI[I_VL:I_VL + 5 * nq].reshape((nq, 5))
+    VG = WF[F_VG:F_VG + 4 * nq].reshape((nq, 4))
+    VB = WF[F_VB:F_VB + 12 * nq].reshape((nq, 2, 6))
+    CK, CV, _, _, C, NK, NV, _, _, _ = cache
     for q in range(ns):
         for f in range(5):
             VL[q, f] = vessels[vsel[q], f]
@@ -200,12 +204,13 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
     return _ellipses(seed, M, Ls, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, want)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_, wanted):
+@njit(**NOREF)
+def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_, wanted, WF):
     """Inside a ray band: the generator's ray-cell phase, and the lumens and end walls near."""
-    RC = np.empty((1, 6, 8))
+    RC = WF[F_CALLEE:F_CALLEE + 48].reshape((1, 6, 8))
     ray_slice_tables(seed, M, L, ray, 1, RC)
-    memo = np.full((8, 4), np.nan)
+    memo = WF[F_CALLEE + 48:F_CALLEE + 80].reshape((8, 4))
+    memo[:] = np.nan
     ph = ray_cell_phase(seed, M, pR, pT, np.uint64(0), ray, RC, memo)
     ns = np.int64(M[RSER])
     h = M[RHEIGHT]
@@ -249,7 +254,7 @@ def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_, wanted):
     return ph, np_
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(**NOREF)
 def clearance(P, n):
     """The smallest clearance of rows P[:n] [µm]: no phase change within that distance."""
     best = INF
@@ -259,7 +264,7 @@ def clearance(P, n):
     return best
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(**NOREF)
 def find_row(P, n, key):
     """Index of the row of P[:n] with the primitive ``key`` (kind, a, b, c, d), or -1."""
     for i in range(n):
@@ -269,29 +274,44 @@ def find_row(P, n, key):
     return -1
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def evaluate_at(R, T, L, lq, ctx, P, cache, want):
-    """:func:`evaluate` in the ply holding T (the generator's rule: ply q holds q·h <= T < (q+1)·h),
-    with the ply's T boundaries as rows.  ``ctx``: :func:`context_tuple`."""
-    (M, rt, plies, seeds, spans, patches, pshape, origins, lips, vessels, nvs, boxes, th, first, bsh, bptr,
-     blist) = ctx
+@njit(**NOREF)
+def _ply_of(T, spans, th, first, nply):
+    """The ply holding T (the generator's rule: ply q holds q·h <= T < (q+1)·h)."""
     q = 0
     if th < 1e300:
         q = np.int64(math.floor(T / th)) - first
         if q > 0 and T < spans[q, 0]:
             q -= 1
-        elif q < plies.shape[0] - 1 and T >= spans[q, 1]:
+        elif q < nply - 1 and T >= spans[q, 1]:
             q += 1
-        q = min(max(q, 0), plies.shape[0] - 1)
-    ph, n = evaluate(R, T, L, lq, seeds[q], M, plies[q], patches[q, :pshape[q, 0], :pshape[q, 1]],
-                     origins[q, 0], origins[q, 1], lips[q], vessels[q], nvs[q], boxes[q],
-                     (bsh[q], bptr[q], blist[q]), rt, P, cache, want)
+        q = min(max(q, 0), nply - 1)
+    return q
+
+
+@njit(**NOREF)
+def _ply_rows(P, n, T, spans, q, th, first, nply, ph):
+    """The rows of ply q's T boundaries: boundary b lies between plies b - 1 and b, the same row,
+    g = T − its T, on both sides."""
     if th < 1e300 and ph != 255:
-        # Boundary b lies between plies b - 1 and b: the same row, g = T − its T, on both sides.
         g0 = T - spans[q, 0]
         g1 = T - spans[q, 1]
         if q > 0:
             n = _row(P, n, P_PLY, q + first, 0, 0, 0, g0, abs(g0))
-        if q < plies.shape[0] - 1:
+        if q < nply - 1:
             n = _row(P, n, P_PLY, q + 1 + first, 0, 0, 0, g1, abs(g1))
-    return ph, n
+    return n
+
+
+@njit(inline="always", **NOREF)
+def evaluate_at(R, T, L, lq, ctx, P, cache, want):
+    """:func:`evaluate` in the ply holding T, with the ply's T boundaries as rows.  ``ctx``:
+    :func:`context_tuple`.  Inlined where it is called (its branches live in the two calls above):
+    a call passes every array of the context and the cache, hundreds of words."""
+    (M, rt, plies, seeds, spans, patches, pshape, origins, lips, vessels, nvs, boxes, th, first, bsh, bptr,
+     blist) = ctx
+    nply = plies.shape[0]
+    q = _ply_of(T, spans, th, first, nply)
+    ph, n = evaluate(R, T, L, lq, seeds[q], M, plies[q], patches[q, :pshape[q, 0], :pshape[q, 1]],
+                     origins[q, 0], origins[q, 1], lips[q], vessels[q], nvs[q], boxes[q],
+                     (bsh[q], bptr[q], blist[q]), rt, P, cache, want)
+    return ph, _ply_rows(P, n, T, spans, q, th, first, nply, ph)

@@ -22,7 +22,7 @@ def surface_at(R, T, L, lq, ctx, P, cache, want):
     raise NotImplementedError("surface_at runs inside the march's Numba kernel only")
 
 
-@overload(surface_at)
+@overload(surface_at, inline="always")
 def _surface_at(R, T, L, lq, ctx, P, cache, want):
     if _is_lattice(ctx):
         return lambda R, T, L, lq, ctx, P, cache, want: lattice_rows(R, T, ctx, P)
