@@ -121,3 +121,37 @@ def borrowed(typingctx, x):
         return _borrow(context, builder, signature.args[0], args[0])
 
     return sig, codegen
+
+
+@intrinsic
+def carve(typingctx, flat, offset, shape):
+    """``flat[offset:offset + prod(shape)]`` (a 1-D C-contiguous array) as a C-contiguous array of
+    ``shape`` (a tuple of integers), unowned like :func:`borrowed`'s, with no runtime call
+    (``reshape`` calls a C helper each time).  For work arrays carved from a buffer the caller
+    owns; nothing checks that the part lies inside ``flat``."""
+    if not (isinstance(flat, types.Array) and flat.ndim == 1 and flat.layout == "C"
+            and isinstance(offset, types.Integer) and isinstance(shape, types.UniTuple)
+            and isinstance(shape.dtype, types.Integer)):
+        return None
+    retty = types.Array(flat.dtype, shape.count, "C")
+    sig = retty(flat, offset, shape)
+
+    def codegen(context, builder, signature, args):
+        from numba.np.arrayobj import populate_array
+
+        src = context.make_array(signature.args[0])(context, builder, args[0])
+        out = context.make_array(retty)(context, builder)
+        dims = [context.cast(builder, v, signature.args[2].dtype, types.intp)
+                for v in cgutils.unpack_tuple(builder, args[2])]
+        itemsize = context.get_constant(types.intp, context.get_abi_sizeof(context.get_data_type(flat.dtype)))
+        strides = []
+        acc = itemsize
+        for d in reversed(dims):
+            strides.insert(0, acc)
+            acc = builder.mul(acc, d)
+        off = context.cast(builder, args[1], signature.args[1], types.intp)
+        populate_array(out, data=builder.gep(src.data, [off]), shape=dims, strides=strides, itemsize=itemsize,
+                       meminfo=None)
+        return out._getvalue()
+
+    return sig, codegen

@@ -110,7 +110,7 @@ def _boundary(seed, kind, a, b, q, phase, mean, sd, emax):
     return q * mean + phase + e
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def chain_interval(x, seed, kind, a, b, phase, mean, sd, min_len):
     """The cell (lo, hi) of a jittered-lattice chain that contains x.
 

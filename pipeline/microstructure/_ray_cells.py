@@ -15,7 +15,7 @@ from ._lattice import chain_interval
 # --------------------------------------------------------------------------
 # Ray columns and groups
 # --------------------------------------------------------------------------
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def ray_row(seed, M, k):
     """Node row (even T index) of ray column k."""
     x = k * M[RSPACE] + (2.0 * uniform(seed, _rng.RAY_COLUMN, k, 0, 0) - 1.0) * M[RJIT]
@@ -38,7 +38,7 @@ def near_ray(seed, M, m, dist):
     return False
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def group_span(seed, M, k, g):
     """(L0, L1) of the ray group of column k in slot g.
 
@@ -56,7 +56,7 @@ def group_span(seed, M, k, g):
     return L0, L0 + ncell * h
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def ray_slot(seed, M, k, L):
     """The slot of column k's ray groups that holds L."""
     period = RAY_PERIOD * M[RHEIGHT]
@@ -64,7 +64,7 @@ def ray_slot(seed, M, k, L):
     return np.int64(math.floor((L - phase) / period))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def ray_group(seed, M, k, L):
     """Ray group of column k around L: (L0, L1, slot); L0 = nan when none (:func:`group_span`)."""
     g = ray_slot(seed, M, k, L)
@@ -79,7 +79,7 @@ def ray_band_width(M):
     return M[RSER] * (M[RWIDTH] + 2.0 * M[T0])
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def ray_slice_tables(seed, M, L, rays, nr, RC):
     """What the ray cells of the active ray rows share on the slice at L.
 

@@ -18,7 +18,7 @@ from ._vessels import member_of
 
 # --------------------------------------------------------------------------
 # One slice (fixed L in ply coordinates): tables, then the per-point phase
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def tip_walls(seed, n, m, L, lo, hi, tip, phase, mean, aR, aT, out):
     """The oblique walls where fibre (n, m) meets the fibres before and after it, at L.
 
@@ -106,7 +106,7 @@ def vessel_outline(rl, rr, td, tu, out):
     out[3] = 0.5 * (tu - td)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def vessel_walls(VG, vessels, nv, VB):
     """The walls cluster neighbours share (VB, see :func:`build_slice`) from their outlines VG."""
     for v in range(nv):

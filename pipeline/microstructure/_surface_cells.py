@@ -8,7 +8,7 @@ import numpy as np
 from numba import njit
 
 from .. import rng as _rng
-from .._intrinsics import any_inside4
+from .._intrinsics import any_inside4, carve
 from ..rng import uniform
 from ._constants import (CTRL, ENDS, FLEN, FLEN_SD, JITTER, PITCH, PLATE, SHAPE, T0, TIP, WALLVAR)
 from ._lattice import _controls, _spline, chain_interval, is_centre
@@ -191,18 +191,18 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
     m0 = m_first - 1
     CK, CV, EK, EV, C, NK, NV, WF, WI, WU = cache
     f0 = F_CALLEE
-    NW = WF[f0:f0 + 192].reshape((8, 8, 3))
-    have = WU[0:64].reshape((8, 8))
+    NW = carve(WF, f0, (8, 8, 3))
+    have = carve(WU, 0, (8, 8))
     have[:] = 0
-    C4 = WF[f0 + 192:f0 + 212].reshape((1, 1, 5, 4))
-    FE4 = WF[f0 + 212:f0 + 232].reshape((4, 1, 5))
-    Nt4 = WF[f0 + 232:f0 + 236].reshape((4, 1))
-    FJ4 = WF[f0 + 236:f0 + 264].reshape((4, 1, 7))
+    C4 = carve(WF, f0 + 192, (1, 1, 5, 4))
+    FE4 = carve(WF, f0 + 212, (4, 1, 5))
+    Nt4 = carve(WF, f0 + 232, (4, 1))
+    FJ4 = carve(WF, f0 + 236, (4, 1, 7))
     FJ4[:] = 0.0
-    CIJ = WI[I_CALLEE:I_CALLEE + 8].reshape((1, 1, 4, 2))
+    CIJ = carve(WI, I_CALLEE, (1, 1, 4, 2))
     CIJ[:] = -1
-    FE = WF[f0 + 264:f0 + 269]
-    FJ = WF[f0 + 269:f0 + 276]
+    FE = carve(WF, f0 + 264, (5,))
+    FJ = carve(WF, f0 + 269, (7,))
     FJ[:] = 0.0
     rn = rt[R_NODE]
     rw = rt[R_WALL]
@@ -282,20 +282,20 @@ def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
     m_lo = 2 * (jc - 1) - 1
     CK, CV, EK, EV, C, NK, NV, WF, WI, WU = cache
     f0 = F_CALLEE
-    FE = WF[f0:f0 + 560].reshape((14, 8, 5))
+    FE = carve(WF, f0, (14, 8, 5))
     FE[:] = 0.0
-    FF = WU[0:112].reshape((14, 8))
+    FF = carve(WU, 0, (14, 8))
     FF[:] = 0
-    Nt = WF[f0 + 560:f0 + 672].reshape((14, 8))
+    Nt = carve(WF, f0 + 560, (14, 8))
     Nt[:] = 0.0
-    LO = WF[f0 + 672:f0 + 896].reshape((14, 8, 2))
+    LO = carve(WF, f0 + 672, (14, 8, 2))
     LO[:] = np.nan
-    NW = WF[f0 + 896:f0 + 1376].reshape((16, 10, 3))
-    have = WU[112:272].reshape((16, 10))
+    NW = carve(WF, f0 + 896, (16, 10, 3))
+    have = carve(WU, 112, (16, 10))
     have[:] = 0
-    FJ = WF[f0 + 1376:f0 + 1383]
+    FJ = carve(WF, f0 + 1376, (7,))
     FJ[:] = 0.0
-    FErow = WF[f0 + 1383:f0 + 1388]
+    FErow = carve(WF, f0 + 1383, (5,))
     for j in range(jc - 1, jc + 2):
         m = 2 * j
         par = j % 2
@@ -311,8 +311,8 @@ def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
             Nt[ii, jj] = t
             LO[ii, jj, 0] = lo
             LO[ii, jj, 1] = hi
-    cand_i = WI[I_CALLEE:I_CALLEE + 9]
-    cand_j = WI[I_CALLEE + 9:I_CALLEE + 18]
+    cand_i = carve(WI, I_CALLEE, (9,))
+    cand_j = carve(WI, I_CALLEE + 9, (9,))
     ph = _polygon_phase(pR, sT, u, w, n_lo, m_lo, FE, FF, Nt, cand_i, cand_j)
     # The faces of the nearest centre with its neighbours, and its end planes.
     best = -1

@@ -28,6 +28,7 @@ import numpy as np
 from numba import njit
 
 from .. import rng as _rng
+from .._intrinsics import carve
 from ..rng import uniform
 from ._constants import (PITCH, RAYS, RHEIGHT, RJIT, RLEN, RLEN_SD, RSER, RSPACE, RSQUEEZE, SCALE, SHAPE, T0,
                          TILE, VWALL)
@@ -90,7 +91,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
     lam = M[RSQUEEZE] * M[SCALE]
     WF = cache[7]
     WI = cache[8]
-    rays = WF[F_RAYS:F_RAYS + 112].reshape((16, 7))
+    rays = carve(WF, F_RAYS, (16, 7))
     nr = 0
     if M[RAYS] != 0.0:
         reach = W2 + lam + c
@@ -128,7 +129,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
         return np.uint8(255), 0
     # Vessel clusters with a member near the point, whole and in the generator's order (the
     # clusters listed in the point's bucket of ``vidx`` hold every such cluster).
-    vsel = WI[I_VSEL:I_VSEL + 48]
+    vsel = carve(WI, I_VSEL, (48,))
     ns = 0
     bshape, bptr, blist = vidx
     b = ((n_fl - vbox[0]) // VBUCKET) * bshape[1] + (w_fl - vbox[2]) // VBUCKET
@@ -144,9 +145,9 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
                 vsel[ns] = u
                 ns += 1
     nq = max(ns, 1)
-    VL = WI[I_VL:I_VL + 5 * nq].reshape((nq, 5))
-    VG = WF[F_VG:F_VG + 4 * nq].reshape((nq, 4))
-    VB = WF[F_VB:F_VB + 12 * nq].reshape((nq, 2, 6))
+    VL = carve(WI, I_VL, (nq, 5))
+    VG = carve(WF, F_VG, (nq, 4))
+    VB = carve(WF, F_VB, (nq, 2, 6))
     CK, CV, _, _, C, NK, NV, _, _, _ = cache
     for q in range(ns):
         for f in range(5):
@@ -207,9 +208,9 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
 @njit(**NOREF)
 def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_, wanted, WF):
     """Inside a ray band: the generator's ray-cell phase, and the lumens and end walls near."""
-    RC = WF[F_CALLEE:F_CALLEE + 48].reshape((1, 6, 8))
+    RC = carve(WF, F_CALLEE, (1, 6, 8))
     ray_slice_tables(seed, M, L, ray, 1, RC)
-    memo = WF[F_CALLEE + 48:F_CALLEE + 80].reshape((8, 4))
+    memo = carve(WF, F_CALLEE + 48, (8, 4))
     memo[:] = np.nan
     ph = ray_cell_phase(seed, M, pR, pT, np.uint64(0), ray, RC, memo)
     ns = np.int64(M[RSER])
