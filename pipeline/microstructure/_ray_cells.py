@@ -69,6 +69,12 @@ def ray_group(seed, M, k, L):
     """Ray group of column k around L: (L0, L1, slot); L0 = nan when none (:func:`group_span`)."""
     g = ray_slot(seed, M, k, L)
     L0, L1 = group_span(seed, M, k, g)
+    return group_at(L, L0, L1, g)
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def group_at(L, L0, L1, g):
+    """:func:`ray_group`'s answer from slot g's span (L0, L1)."""
     if L < L0 or L > L1:
         return math.nan, math.nan, g
     return L0, L1, g

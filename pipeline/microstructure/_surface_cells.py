@@ -12,6 +12,7 @@ from .._intrinsics import any_inside4, carve
 from ..rng import uniform
 from ._constants import (CTRL, ENDS, FLEN, FLEN_SD, JITTER, PITCH, PLATE, SHAPE, T0, TIP, WALLVAR)
 from ._lattice import _controls, _spline, chain_interval, is_centre
+from ._ray_cells import group_at, group_span, ray_slot
 from ._slice import _in_tip_wall, _polygon_phase, centre_tables, face_distance, fibre_min_len
 from ._vessels import member_of
 
@@ -27,7 +28,11 @@ NEAR = 16  # the near cache: nodes (n mod NEAR, m mod NEAR) with their four cont
 # _ellipses, _polygon or _ray_cell, which share the region after them.
 F_RAYS, F_VG, F_VB, F_CALLEE = 0, 112, 304, 880  # rays (16, 7); VG (<= 48, 4); VB (<= 48, 2, 6)
 I_VSEL, I_VL, I_CALLEE = 0, 48, 288  # vsel (48); VL (<= 48, 5)
-N_FLOATS, N_INTS, N_BYTES = F_CALLEE + 1388, I_CALLEE + 18, 272
+# A memo in the same buffers: the spans of ray groups (group_span draws a normal deviate, a log
+# and a cosine, for each column near a point), direct-mapped on (column, slot, seed).
+SPANS = 256  # entries (a power of 2)
+F_SPANS, I_SPANS = F_CALLEE + 1388, I_CALLEE + 18  # (L0, L1) and (k, g, seed) per entry
+N_FLOATS, N_INTS, N_BYTES = F_SPANS + 2 * SPANS, I_SPANS + 3 * SPANS, 272
 NOREF = dict(cache=True, nogil=True, error_model="numpy", _nrt=False)  # the evaluation's kernels
 
 
@@ -41,8 +46,13 @@ def new_cache():
     return (np.full((CACHE_SLOTS, 4), np.iinfo(np.int64).min, np.int64), np.empty((CACHE_SLOTS, 3)),
             np.full((CACHE_SLOTS, 3), np.iinfo(np.int64).min, np.int64), np.empty((CACHE_SLOTS, 2)),
             np.empty((4, 3)), np.full((NEAR * NEAR, 4), np.iinfo(np.int64).min, np.int64),
-            np.empty((NEAR * NEAR, 4, 3)), np.empty(N_FLOATS), np.empty(N_INTS, np.int64),
-            np.empty(N_BYTES, np.uint8))
+            np.empty((NEAR * NEAR, 4, 3)), np.empty(N_FLOATS), _work_ints(), np.empty(N_BYTES, np.uint8))
+
+
+def _work_ints():
+    out = np.empty(N_INTS, np.int64)
+    out[I_SPANS:] = np.iinfo(np.int64).min  # no span memoised
+    return out
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
@@ -122,6 +132,33 @@ def _fibre_cell(seed, M, L, n, m, min_len, EK, EV):
     if not (EK[i, 0] == n and EK[i, 1] == m and EK[i, 2] == np.int64(seed) and EV[i, 0] <= L < EV[i, 1]):
         _cell_fill(seed, M, L, n, m, min_len, i, EK, EV)
     return EV[i, 0], EV[i, 1]
+
+
+@njit(**NOREF)
+def _span_fill(seed, M, k, g, i, WF, WI):
+    L0, L1 = group_span(seed, M, k, g)
+    WI[I_SPANS + 3 * i] = k
+    WI[I_SPANS + 3 * i + 1] = g
+    WI[I_SPANS + 3 * i + 2] = np.int64(seed)
+    WF[F_SPANS + 2 * i] = L0
+    WF[F_SPANS + 2 * i + 1] = L1
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def span_cached(seed, M, k, g, WF, WI):
+    """:func:`~pipeline.microstructure._ray_cells.group_span`, memoised in the work buffers."""
+    i = _slot(k, g, 11, np.int64(seed)) & (SPANS - 1)
+    if not (WI[I_SPANS + 3 * i] == k and WI[I_SPANS + 3 * i + 1] == g and WI[I_SPANS + 3 * i + 2] == np.int64(seed)):
+        _span_fill(seed, M, k, g, i, WF, WI)
+    return WF[F_SPANS + 2 * i], WF[F_SPANS + 2 * i + 1]
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def group_cached(seed, M, k, L, WF, WI):
+    """:func:`~pipeline.microstructure._ray_cells.ray_group` with its span memoised."""
+    g = ray_slot(seed, M, k, L)
+    L0, L1 = span_cached(seed, M, k, g, WF, WI)
+    return group_at(L, L0, L1, g)
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")

@@ -34,11 +34,11 @@ from ._constants import (PITCH, RAYS, RHEIGHT, RJIT, RLEN, RLEN_SD, RSER, RSPACE
                          TILE, VWALL)
 from ._distortion import pull_back
 from ._lattice import chain_interval
-from ._ray_cells import group_span, ray_band_width, ray_cell_phase, ray_group, ray_row, ray_slice_tables
+from ._ray_cells import ray_band_width, ray_cell_phase, ray_row, ray_slice_tables
 from ._slice import _squeeze_and_classify, _vessel_phase, add_ray_row, vessel_outline, vessel_walls
 
 from ._surface_cells import (F_CALLEE, F_RAYS, F_VB, F_VG, I_VL, I_VSEL, NOREF, _ellipses, _polygon,  # noqa: F401
-                             new_cache, node_cached)
+                             group_cached, new_cache, node_cached, span_cached)
 
 from ._surface_rows import (INF, MAX_PRIMS, N_COLS, P_BAND, P_FACE, P_LUMEN, P_PLATE, P_PLY, P_RAY_END,  # noqa: F401
                             P_RAY_LUMEN, P_REACH, P_TIP, P_TIP_END, P_VESSEL_IN, P_VESSEL_OUT, P_VESSEL_SHARED,
@@ -102,13 +102,13 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
             t_r = row * c
             if abs(pT - t_r) > reach:
                 continue
-            L0, L1, g = ray_group(seed, M, k, Ls)
+            L0, L1, g = group_cached(seed, M, k, Ls, WF, WI)
             b = 0.0
             if math.isnan(L0):
                 # No band at this L: one appears only inside a group's span along L.
                 dist_l = INF
                 for gg in range(g - 1, g + 2):
-                    a0, a1 = group_span(seed, M, k, gg)
+                    a0, a1 = span_cached(seed, M, k, gg, WF, WI)
                     dist_l = min(dist_l, max(a0 - Ls, Ls - a1, 0.0))
                 gb = abs(pT - t_r)
                 np_ = _row(P, np_, P_BAND, k, 0, 0, 0, gb, max(dist_l, gb / (lam_p + rt[R_BAND])))
