@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .._intrinsics import borrowed
+from .._intrinsics import borrowed, carve
 from ..microstructure.surface import MAX_PRIMS, N_COLS, P_BAND, P_PLY, P_REACH, P_VESSEL_OUT
 from ._surface_points import surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
@@ -73,6 +73,13 @@ def _regime(kind):
 PROBE = 1024.0  # lattice points (about 1e-9 µm) probed past a root where g and the phase part
 OVERSHOOT = 1.25  # a secant step towards a surface goes this far past the secant's root, checked at its end
 LATTICE = 2.0 ** -40  # [µm] crossings land on this lattice along a segment (~1e-12 µm)
+ROWS = MAX_PRIMS * N_COLS
+WORK = 3 * ROWS + 6 * 3 + 5 * 5  # the march's work arrays: three row tables, six vectors, five keys
+
+
+def new_work() -> np.ndarray:
+    """The march's work arrays, one buffer per thread; the caller owns it while the march runs."""
+    return np.empty(WORK)
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -247,7 +254,7 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, ca
 @njit(cache=True, nogil=True)
 def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fseed, ctx,
                hit, tol, h_grad, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache,
-               resume, skips, stop):
+               resume, skips, stop, work):
     """Trace rays from ``pos`` (N, 3) [µm] with unit ``dirs`` through the wood between T = 0 and
     T = ``thickness``; writes the exit point and direction, status, interfaces, path length [µm],
     the number of point evaluations and of surfaces passed without a phase change, and the phase
@@ -267,22 +274,32 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     to switch (one free primitive per step).  The phase at the step's end tells whether a primitive
     switched; a switch is then bracketed by regula falsi on its g and put on the lattice.
     """
-    ctx = borrowed(ctx)  # the caller owns them throughout: no atomic reference counts below
+    # The caller owns every array throughout: borrowed and carved, they carry no reference counts
+    # (an atomic add and a call wherever one is passed on).
+    ctx = borrowed(ctx)
     cache = borrowed(cache)
-    P = np.empty((MAX_PRIMS, N_COLS))
-    Pa = np.empty((MAX_PRIMS, N_COLS))
-    Pb = np.empty((MAX_PRIMS, N_COLS))
-    X = np.empty(3)
-    d = np.empty(3)
-    nd = np.empty(3)
-    nrm = np.empty(3)
-    key = np.zeros(5)
-    skip = np.zeros(5)
-    base = np.empty(3)
-    e = np.empty(3)
-    every = np.zeros(5)
-    prev_key = np.zeros(5)
-    seg_skip = np.zeros(5)
+    P = carve(work, 0, (MAX_PRIMS, N_COLS))
+    Pa = carve(work, ROWS, (MAX_PRIMS, N_COLS))
+    Pb = carve(work, 2 * ROWS, (MAX_PRIMS, N_COLS))
+    v0 = 3 * ROWS
+    X = carve(work, v0, (3,))
+    d = carve(work, v0 + 3, (3,))
+    nd = carve(work, v0 + 6, (3,))
+    nrm = carve(work, v0 + 9, (3,))
+    base = carve(work, v0 + 12, (3,))
+    e = carve(work, v0 + 15, (3,))
+    k0 = v0 + 18
+    key = carve(work, k0, (5,))
+    skip = carve(work, k0 + 5, (5,))
+    every = carve(work, k0 + 10, (5,))
+    prev_key = carve(work, k0 + 15, (5,))
+    seg_skip = carve(work, k0 + 20, (5,))
+    for q in range(5):
+        key[q] = 0.0
+        skip[q] = 0.0
+        every[q] = 0.0
+        prev_key[q] = 0.0
+        seg_skip[q] = 0.0
     lq = 0.0
     for r in range(pos.shape[0]):
         # The ray is X0 + s·d on each straight segment: points are never accumulated step by

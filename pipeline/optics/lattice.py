@@ -17,7 +17,7 @@ import numpy as np
 
 from . import _exact as _X
 from ._lattice_rows import lattice_context
-from ._surface_march import HIT, TOL, march
+from ._surface_march import HIT, TOL, march, new_work
 from .interface import REFLECTED, TRANSMITTED
 from .rays import RayResult
 from .settings import settings_for
@@ -181,7 +181,7 @@ class LatticeSlab:
         march(pos, np.ascontiguousarray(directions, np.float64), ids, float(self.thickness_um), float(n_wall),
               float(n_poly), int(max_events), bool(fresnel), np.uint64(seed),
               lattice_context(lat.geo, lat.kind, lat.seed), self.hit, self.tol, 0.0, 1.0, *out.values(), log,
-              np.zeros(1), np.zeros(n, np.uint8), np.zeros((n, 5)), np.empty((n, 3)))
+              np.zeros(1), np.zeros(n, np.uint8), np.zeros((n, 5)), np.empty((n, 3)), new_work())
         if log_events:
             out["log"] = log
         return out

@@ -20,7 +20,7 @@ import numpy as np
 from ..microstructure.region import context_tuple, phases, region_context
 from ..microstructure.surface import new_cache
 from ..params import WoodParams
-from ._surface_march import HIT, NEEDS_REGION, TOL, march
+from ._surface_march import HIT, NEEDS_REGION, TOL, march, new_work
 
 # Internal steps [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are
 # (crossings land on a fixed lattice).  H_GRAD is part of the normal's definition.
@@ -128,7 +128,7 @@ class WoodSurface:
                           float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed), ctx,
                           self.hit, self.tol, self.h_grad, self.step_scale, *(a[lo:hi] for a in res[:8]),
                           res[10][lo:hi] if log_events else res[10], new_cache(), resume[todo[lo:hi]],
-                          res[8][lo:hi], res[9][lo:hi])
+                          res[8][lo:hi], res[9][lo:hi], new_work())
 
                 parts = min(self.threads, max(1, k // 16))
                 cuts = np.linspace(0, k, parts + 1).astype(int)
