@@ -86,7 +86,9 @@ def render(doc: dict) -> str:
             how = f" ({tp['how']})" if "how" in tp else ""
             md.append(f"At paper scale (`make table1 SCALE=paper YES=1`, `make bench-table1-paper`) with "
                       f"`{tp.get('method', 'accurate')}`, cold: {tp['cold_s'] / 60:.1f} min{cpu}{how}.")
-            for key, label in (("exact_version_3_before_borrowed_arrays",
+            for key, label in (("exact_version_3_with_reference_counts",
+                                "Before the evaluations ran without reference counts (the same rays)"),
+                               ("exact_version_3_before_borrowed_arrays",
                                 "Before the march borrowed its arrays (the same rays)"),
                                ("exact_version_2", "With `exact` version 2 (before its regime steps and inlined nodes)"),
                                ("accurate", "With `accurate`, as Table 1 was traced before")):

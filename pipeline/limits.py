@@ -49,9 +49,10 @@ CAMERA_MEMORY, CAMERA_BYTES_PER_WOOD_VOXEL = 330e6, 0.27
 RAY_BYTES = 512  # a ray's state, result and beam entry in one trace
 DATASET_RAY_BYTES = 24  # theta_r, theta_l, interfaces and status of a ray in a result Dataset
 INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
-                   # exact: no wood generated; ~75 µs an interface (1000 rays x 1.5 mm: 73 CPU-µs on 2
-                   # threads; fewer rays find fewer control values memoised), plus its regions
-                   "exact": 8.5e-5}
+                   # exact: no wood generated; ~20 µs an interface (Table 1 at paper scale: 404 CPU-s for
+                   # 28 CPU-min at 85 µs; 1000 rays x 1.5 mm: 29 CPU-µs on 2 threads, regions included;
+                   # fewer rays find fewer control values memoised), plus its regions
+                   "exact": 2.5e-5}
 REGION_MEMORY_FACTOR = 4.0  # exact: a worker's growth with its regions (their tiles, caches and arenas)
 REGION_CPU_S_PER_BYTE = 5e-8  # exact: building a trace's regions (distortion tiles: 1.3 s for 1 mm of birch)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
@@ -227,10 +228,15 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
                                voxel_um=voxel, pitch_um=s.pitch_um, method=s.settings.method,
                                wood=False, store=True, generated=s.wood is not None, params=s.wood)
         n_shards = math.ceil(s.rays / shard_rays)
+        # A surface scene's region is built by each shard, but its distortion tiles (nearly all of
+        # its cost) are cached in the worker: counted once a scene.
+        again = 0.0
+        if s.wood is not None and METHODS.get(s.settings.method) == "surfaces":
+            again = (n_shards - 1) * surface_region_bytes(s.beam_um, s.thickness_um, s.pitch_um) * REGION_CPU_S_PER_BYTE
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))
         written = n_shards * SHARD_BYTES + s.rays * (SHARD_RAY_BYTES + DATASET_RAY_BYTES) + 2 * ENTRY_BYTES
-        est = est + Estimate(shard.cpu_s * n_shards + SCENE_CPU_S, max(shard.memory, reduce), written)
+        est = est + Estimate(shard.cpu_s * n_shards - again + SCENE_CPU_S, max(shard.memory, reduce), written)
     return est + _woods(woods) + (Estimate(DATASET_CPU_S, 0.0, DATASET_BYTES) if scenes else Estimate())
 
 
