@@ -149,9 +149,14 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
     VG = carve(WF, F_VG, (nq, 4))
     VB = carve(WF, F_VB, (nq, 2, 6))
     CK, CV, _, _, C, NK, NV, _, _, _ = cache
+    wk = want[0]
+    # Asked for a fibre's primitive only: the vessels' members matter (a member has no lumen of
+    # its own), not their outlines, walls or rows.
+    cells = wk == P_LUMEN or wk == P_PLATE or wk == P_TIP or wk == P_TIP_END or wk == P_FACE
     for q in range(ns):
         for f in range(5):
             VL[q, f] = vessels[vsel[q], f]
+    for q in range(0 if cells else ns):
         n = VL[q, 0]
         m = VL[q, 1]
         rl, _, _ = node_cached(seed, M, n - 3, m, Ls, CK, CV, C, NK, NV)
@@ -159,9 +164,10 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
         _, td, _ = node_cached(seed, M, n, m - 3, Ls, CK, CV, C, NK, NV)
         _, tu, _ = node_cached(seed, M, n, m + 3, Ls, CK, CV, C, NK, NV)
         vessel_outline(rl, rr, td, tu, VG[q])
-    vessel_walls(VG, VL, ns, VB)
+    if not cells:
+        vessel_walls(VG, VL, ns, VB)
     first = -1
-    for q in range(ns):
+    for q in range(0 if cells else ns):
         i0 = np.int64(math.floor((VG[q, 0] - VG[q, 2]) / c))
         i1 = np.int64(math.floor((VG[q, 0] + VG[q, 2]) / c))
         j0 = np.int64(math.floor((VG[q, 1] - VG[q, 3]) / c))
@@ -170,7 +176,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
             first = q - VL[q, 3]
     vwall = M[VWALL]
     rn = rt[R_NODE]
-    for q in range(ns):
+    for q in range(0 if cells else ns):
         dR = pR - VG[q, 0]
         dT = sT - VG[q, 1]
         g = _ellipse_margin(dR, dT, VG[q, 2], VG[q, 3])
@@ -193,8 +199,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
             far = math.hypot(pR - VB[q, side, 4], sT - VB[q, side, 5])
             rate = rn * (1.0 + 2.0 * far / VB[q, side, 3])
             np_ = _row(P, np_, P_VESSEL_SHARED, VL[q, 0], VL[q, 1], side, 0, gb, abs(gb) / (k_in + rate))
-    wk = want[0]
-    if wk > 0.0 and not (wk == P_LUMEN or wk == P_PLATE or wk == P_TIP or wk == P_TIP_END or wk == P_FACE):
+    if wk > 0.0 and not cells:
         return np.uint8(0), np_
     if first >= 0 and wk == 0.0:
         ph = _vessel_phase(pR, sT, VG, VB, VL, first, vwall)
