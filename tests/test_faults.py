@@ -112,10 +112,15 @@ def test_a_worker_killed_mid_task_is_replaced_and_the_numbers_are_the_same(tmp_p
         pids = list(client.run(os.getpid).values())
 
         def kill():
+            # Mid-run: as soon as the worker holds one of the study's tasks (a fixed delay is not
+            # mid-run on a host where the study takes less).
+            deadline = time.monotonic() + 60.0
+            while not any(client.processing().values()) and time.monotonic() < deadline:
+                time.sleep(0.01)
             killed.append(pids[0])
             os.kill(pids[0], signal.SIGKILL)
 
-        timer = threading.Timer(2.0, kill)  # mid-run: the study takes several seconds
+        timer = threading.Thread(target=kill)
         timer.start()
         compute([plan_study(st, tmp_path / "c")], client)
         timer.join()
