@@ -511,7 +511,8 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add(f"| the measured samples | `make experiment SCALE=paper YES=1` | {_minutes(st['experiment_paper']['cold_s'])} cold |"
         if "experiment_paper" in st else "| the measured samples | `make experiment SCALE=paper YES=1` | not recorded |")
     add(f"| fibre tips, with and without ray cells | `make fibre-tips SCALE=paper YES=1` | {_minutes(st['fibre_tips_paper']['cold_s'])} "
-        "(flat ends cached by Table 1) |" if "fibre_tips_paper" in st
+        + ("(flat ends cached by Table 1) |" if st["fibre_tips_paper"].get("flat_ends_cached", True) else "cold |")
+        if "fibre_tips_paper" in st
         else "| fibre tips, with and without ray cells | `make fibre-tips SCALE=paper YES=1` | not recorded |")
     if "table1_paper_method" in st:
         pm = st["table1_paper_method"]
