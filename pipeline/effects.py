@@ -203,7 +203,8 @@ def method_rows(tables: dict, other: dict, *, n_boot: int = N_BOOT, seed: int = 
     paired difference (% of the reference; haze in points) on the rays both traced (the same woods,
     the same entry points: ray i of a beam enters at the same point whatever the total), from a
     hierarchical bootstrap drawing the same woods and rays for both methods.  Keys ``<q>_ref``,
-    ``<q>_other``, ``<q>_change``; ``ref`` and ``other`` are the methods' names."""
+    ``<q>_other`` (each method pooled over those common rays), ``<q>_change``; ``ref`` and ``other``
+    are the methods' names."""
     rng = np.random.default_rng(seed)
     a = (1.0 - LEVEL) / 2.0
     rows = []
@@ -229,11 +230,9 @@ def method_rows(tables: dict, other: dict, *, n_boot: int = N_BOOT, seed: int = 
             rows.append({
                 "study": name, "parameter": dim, "value": value_label(acc[dim].values[k]),
                 "ref": method_of(acc), "other": method_of(pap),
-                **{f"{q}_{m}": float(d[q].values[k]) * (100 if q == "haze" else 1)
-                   for q in ("FWHM_R", "FWHM_L", "haze") for m, d in (("ref", acc), ("other", pap))},
-                **{f"{q}_{m}_ci": tuple(float(d[f"{q}_ci_{b}"].values[k]) * (100 if q == "haze" else 1)
-                                        for b in ("lower", "upper"))
-                   for q in ("FWHM_R", "FWHM_L", "haze") for m, d in (("ref", acc), ("other", pap))},
+                # Both methods on the rays both traced (a study may have more woods or rays than the other).
+                **{f"{q}_{m}": float(point[i][j]) * (100 if q == "haze" else 1)
+                   for j, q in enumerate(("FWHM_R", "FWHM_L", "haze")) for i, m in enumerate(("ref", "other"))},
                 **{f"{q}_change": (diff[j], (float(np.quantile(boots[:, j], a)), float(np.quantile(boots[:, j], 1 - a))))
                    for j, q in enumerate(("FWHM_R", "FWHM_L", "haze"))},
                 "rays_other": pap.sizes["ray"], "rays_common": n, "realisations_common": n_real,

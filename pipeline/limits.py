@@ -218,7 +218,7 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
     est = Estimate()
     woods = {}
     for s in scenes:
-        if s.target is not None:  # traced to a precision: at most its cap of rays
+        if s.target is not None and s.target.over == "rays":  # traced to a precision: at most its cap of rays
             s = dataclasses.replace(s, rays=s.target.max_rays)
         voxel = s.trace_voxel_um
         if s.settings.medium_kind == "voxels" and s.wood is not None:  # surfaces and lattices store no wood

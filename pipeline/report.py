@@ -21,6 +21,9 @@ from .effects import (N_BOOT, TABLE1, TRADEOFF_TARGETS, Effect, all_effects_of, 
                       setting_label, study_dimension, table1_rows)
 from .design import MAPS, window_table
 from .figures import open_dataset, table1_structures, traced_voxel, value_label
+from .report_tables import (balsa_reading_sentence, effects_markdown, experiment_markdown, fibre_tip_markdown,
+                            fibre_tip_sentence, method_markdown, method_summary, table1_markdown, variation_markdown,
+                            woods_text)
 
 # What geometrical optics leads one to expect of each study, before running it; the
 # report states whether twray's numbers agree.  (The published study's own values are
@@ -46,145 +49,6 @@ EXPECTED = {
 }
 
 # ------------------------------------------------------------------ tables
-def _f(x, nd=2) -> str:
-    return f"{x:.{nd}f}"
-
-def _with_ci(x: float, ci, nd: int = 2) -> str:
-    """``x [lo, hi]`` at ``nd`` decimals."""
-    return f"{_f(x, nd)} [{_f(ci[0], nd)}, {_f(ci[1], nd)}]"
-
-def table1_markdown(rows: list[dict]) -> list[str]:
-    lines = ["| study | parameter | value | FWHM_R (°) [95 % CI] | FWHM_L (°) [95 % CI] | haze (%) [95 % CI] "
-             "| transmitted | interfaces per ray | FWHM_R of each wood (°) |", "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(
-            f"| {r['study']} | {r['parameter']} | {r['value']} | {_with_ci(r['FWHM_R'], r['FWHM_R_ci'])} | "
-            f"{_with_ci(r['FWHM_L'], r['FWHM_L_ci'])} | {_with_ci(r['haze'], r['haze_ci'], 1)} | "
-            f"{r['transmitted']}/{r['rays']} | {_f(r['interfaces_per_ray'], 1)} | "
-            f"{', '.join(_f(v) for v in r['FWHM_R_each'])} |")
-    return lines
-
-def variation_markdown(rows: list[dict]) -> list[str]:
-    """How much each value moves from one wood to the next, and what that does to its interval."""
-    lines = ["| study | value | FWHM_R: spread of the woods (CV) | FWHM_L: CV | haze: SD of the woods (points) "
-             "| FWHM_R interval, rays alone → with the woods |", "|---|---|---|---|---|---|"]
-    for r in rows:
-        def cv(v):
-            return f"{100 * np.std(v, ddof=1) / np.mean(v):.0f} %" if v.size > 1 and np.mean(v) > 0 else "—"
-        ray, both = r["FWHM_R_ray_ci"], r["FWHM_R_ci"]
-        lines.append(f"| {r['study']} | {r['parameter']} {r['value']} | {cv(r['FWHM_R_each'])} | "
-                     f"{cv(r['FWHM_L_each'])} | "
-                     f"{np.std(r['haze_each'], ddof=1) if r['haze_each'].size > 1 else float('nan'):.1f} | "
-                     f"±{(ray[1] - ray[0]) / 2:.2f}° → ±{(both[1] - both[0]) / 2:.2f}° |")
-    return lines
-
-def method_markdown(rows: list[dict]) -> list[str]:
-    ref, other = rows[0]["ref"], rows[0]["other"]
-    both, minus = f"{ref} · {other}", f"{other} − {ref}"
-    lines = [f"| study | value | FWHM_R (°): {both} | {minus} | FWHM_L (°): {both} | {minus} | haze (%): {both} "
-             f"| {minus} |", "|---|---|---|---|---|---|---|---|"]
-
-    def change(c, unit):
-        d, (lo, hi) = c
-        return f"{d:+.0f}{unit} [{lo:+.0f}, {hi:+.0f}]" + ("" if lo > 0 or hi < 0 else " (not resolved)")
-
-    for r in rows:
-        lines.append(
-            f"| {r['study']} | {r['parameter']} {r['value']} | {r['FWHM_R_ref']:.2f} · {r['FWHM_R_other']:.2f} | "
-            f"{change(r['FWHM_R_change'], ' %')} | {r['FWHM_L_ref']:.2f} · {r['FWHM_L_other']:.2f} | "
-            f"{change(r['FWHM_L_change'], ' %')} | {r['haze_ref']:.1f} · {r['haze_other']:.1f} | "
-            f"{change(r['haze_change'], ' pts')} |")
-    return lines
-
-def method_summary(rows: list[dict]) -> str:
-    """How many of the values each quantity differs for (interval excluding 0), and by how much."""
-    parts = []
-    for q, unit in (("FWHM_R", " %"), ("FWHM_L", " %"), ("haze", " points")):
-        hit = [r for r in rows if r[f"{q}_change"][1][0] > 0 or r[f"{q}_change"][1][1] < 0]
-        span = "" if not hit else (f" (from {min(r[f'{q}_change'][0] for r in hit):+.0f} to "
-                                   f"{max(r[f'{q}_change'][0] for r in hit):+.0f}{unit})")
-        parts.append(f"{q} for {len(hit)} of {len(rows)} values{span}")
-    return f"`{rows[0]['other']}` differs from `{rows[0]['ref']}` beyond its interval in " + "; ".join(parts) + "."
-
-def balsa_reading_sentence(radius, diameter) -> str:
-    """The balsa sample with its quoted 35.2 µm read as a radius (70.4 µm cells) beside the preset's
-    reading as a diameter, value by value (walls)."""
-    def haze(one) -> str:
-        return _with_ci(100 * float(one["haze"]), (100 * float(one["haze_ci_lower"]),
-                                                    100 * float(one["haze_ci_upper"])), 1)
-
-    dim = study_dimension(radius)
-    parts = []
-    for k in range(radius.sizes[dim]):
-        a, b = radius.isel({dim: k}), diameter.isel({dim: k})
-        parts.append(f"{float(a[dim]):g} µm walls: haze {haze(a)} % against {haze(b)} %, "
-                     f"FWHM_R {float(a['FWHM_R']):.2f}° against {float(b['FWHM_R']):.2f}°")
-    return ("The source's \"fibre radius of around 35.2 µm\" can also be read as a radius: 70.4 µm cells "
-            "(`studies/experiment/balsa-1mm-radius.yaml`, angles inside, the same seeds and beam). Against the "
-            "preset's reading as a diameter: " + "; ".join(parts) + ". The preset keeps the diameter reading, "
-            "by analogy with birch, whose quoted 14.5 is its fibre diameter.")
-
-def experiment_markdown(rows: list[dict]) -> list[str]:
-    lines = ["| sample | wall (µm) | haze inside (%) [95 % CI] | haze in air (%) [95 % CI] | haze in air, each wood (%) "
-             "| FWHM_R inside → in air (°) |", "|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(
-            f"| {r['wood']} TW, {r['thickness_mm']:g} mm, {r['fibre_um']:g} µm cells | {r['wall_um']:g} | "
-            f"{_with_ci(r['haze_inside'], r['haze_inside_ci'], 1)} | {_with_ci(r['haze_air'], r['haze_air_ci'], 1)} | "
-            f"{', '.join(f'{v:.0f}' for v in r['haze_air_each'])} | "
-            f"{r['FWHM_R_inside']:.2f} → {r['FWHM_R_air']:.2f} |")
-    return lines
-
-def fibre_tip_markdown(rows: list[dict]) -> list[str]:
-    lines = ["| ray cells | fibre tips λ (µm) | tip wall to L | FWHM_R (°) [95 % CI] | FWHM_L (°) [95 % CI] "
-             "| haze (%) [95 % CI] | FWHM_R against flat ends | FWHM_L against flat ends | haze against flat ends |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        ch = r["change"]
-        cells = [_effect_cell(ch[q]) if ch[q] is not None else "reference" for q in ("FWHM_R", "FWHM_L", "haze")]
-        lines.append(
-            f"| {'yes' if r['ray_cells'] else 'no'} | {r['tip_um']:g}{' (flat ends)' if not r['tip_um'] else ''} | "
-            f"{r['angle_deg']:.1f}° | {_with_ci(r['FWHM_R'], r['FWHM_R_ci'])} | {_with_ci(r['FWHM_L'], r['FWHM_L_ci'])} | "
-            f"{_with_ci(r['haze'], r['haze_ci'], 1)} | " + " | ".join(cells) + " |")
-    return lines
-
-def fibre_tip_sentence(rows: list[dict]) -> str:
-    """What overlapping tips do to FWHM_L, with and without ray cells, read from the rows."""
-    parts = []
-    for ray_cells in (True, False):
-        mine = [r for r in rows if r["ray_cells"] == ray_cells]
-        flat = next(r for r in mine if not r["tip_um"])
-        tipped = [r for r in mine if r["tip_um"]]
-        resolved = [r for r in tipped if r["change"]["FWHM_L"].resolved]
-        moves = ", ".join(f"{_effect_cell(r['change']['FWHM_L'])} at λ = {r['tip_um']:g} µm" for r in tipped)
-        parts.append(f"{'with' if ray_cells else 'without'} ray cells, FWHM_L of {flat['FWHM_L']:.2f}° with flat "
-                     f"ends changes by {moves} ({len(resolved)} of {len(tipped)} resolved)")
-    mine = [r for r in rows if r["ray_cells"]]
-    flat, longest = mine[0], max(mine, key=lambda r: r["tip_um"])
-    grow = longest["interfaces_per_ray"] / flat["interfaces_per_ray"]
-    return ("; ".join(parts) + ". The oblique walls are also walls to cross: with ray cells, a ray meets "
-            f"{flat['interfaces_per_ray']:.0f} interfaces with flat ends and {longest['interfaces_per_ray']:.0f} at "
-            f"λ = {longest['tip_um']:g} µm ({100 * (grow - 1):+.0f} %); a random walk (FWHM_R ∝ √N, as over "
-            f"thickness in study 1) predicts FWHM_R {100 * (math.sqrt(grow) - 1):+.0f} %, against "
-            f"{longest['change']['FWHM_R'].change:+.0f} % measured.")
-
-def _effect_cell(e: Effect) -> str:
-    unit = " pts" if e.quantity == "haze" else " %"
-    mark = "" if e.resolved else " (not resolved)"
-    return f"{e.change:+.1f}{unit} [{e.ci[0]:+.1f}, {e.ci[1]:+.1f}]{mark}"
-
-def effects_markdown(all_effects: dict) -> list[str]:
-    lines = ["| study | change | FWHM_R | FWHM_L | haze |", "|---|---|---|---|---|"]
-    for name, effs in all_effects.items():
-        by_value: dict = {}
-        for e in effs:
-            by_value.setdefault(e.value, {})[e.quantity] = e
-        for value, q in by_value.items():
-            e0 = q["FWHM_R"]
-            lines.append(f"| {name} | {e0.parameter} {e0.reference} → {value} | {_effect_cell(q['FWHM_R'])} | "
-                         f"{_effect_cell(q['FWHM_L'])} | {_effect_cell(q['haze'])} |")
-    return lines
-
 def _agreement(name: str, effs: list[Effect], tables: dict) -> str:
     """Whether the study's resolved effects go the way EXPECTED says (a sentence, from the numbers)."""
     def sign(value, quantity):
@@ -296,8 +160,9 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     voxel_rows = method_rows(tables, voxel_tables, n_boot=n_boot) if voxel_tables else []
     p1 = paper_tables["study-1"]
     s1 = tables["study-1"]
-    n_real = s1.sizes.get("realisation", 1)
-    seeds = [int(v) for v in s1["seed_of_realisation"].values] if "seed_of_realisation" in s1 else [s1.attrs["seed"]]
+    woods = {name: ds.sizes.get("realisation", 1) for name, ds in tables.items()}
+    first_seed = int(s1["seed_of_realisation"].values[0]) if "seed_of_realisation" in s1 else int(s1.attrs["seed"])
+    target = json.loads(s1.attrs["target_ci"]) if "target_ci" in s1.attrs else None
     settings = json.loads(s1.attrs["trace_settings"])
     fig = "figures"
     L: list[str] = []
@@ -311,8 +176,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add(f"Table 1 was traced with twray {s1.attrs['twray_version']} (tracer version {s1.attrs['tracer_version']}, "
         f"generator version {s1.attrs['generator_version']}) at scale `{s1.attrs['scale']}`: "
-        f"{s1.attrs['rays']} rays per value on each of {n_real} wood realisations (seeds "
-        f"{seeds[0]}-{seeds[-1]}: every value of every study is traced on the same {n_real} woods), "
+        f"{s1.attrs['rays']} rays per value on each of {woods_text(woods, target, first_seed)}, "
         f"method `{settings['method']}` "
         + (f"(wood traced on {traced_voxel(json.loads(s1.attrs['scenes'])[0]):g} µm voxels), "
            if settings["method"] != "exact" else "(the model's own surfaces, no voxels), ")
@@ -338,11 +202,11 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add("## Table 1")
     add("")
-    add(f"Each number is the {n_real} wood realisations pooled: the Lorentz fit (FWHM = 2γ) to all their "
-        f"transmitted rays, and haze the share of them deviating more than {HAZE_ANGLE_DEG:g}°. Intervals are "
-        "95 %, from a hierarchical bootstrap (woods drawn with replacement, then rays within each drawn wood), "
-        "so they hold the variation from one wood to the next as well as the sampling of rays. The last "
-        "column is each wood's own FWHM_R.")
+    add(f"Each number is its study's wood realisations pooled (the woods column): the Lorentz fit (FWHM = 2γ) to "
+        f"all their transmitted rays, and haze the share of them deviating more than {HAZE_ANGLE_DEG:g}°. "
+        "Intervals are 95 %, from a hierarchical bootstrap (woods drawn with replacement, then rays within each "
+        "drawn wood), so they hold the variation from one wood to the next as well as the sampling of rays. The "
+        "last column is the range of the woods' own FWHM_R.")
     add("")
     L.extend(table1_markdown(rows))
     add("")
@@ -355,7 +219,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add("## Wood-to-wood variation")
     add("")
-    add(f"One wood realisation is one sample. How much each value moves between the {n_real} woods "
+    add("One wood realisation is one sample. How much each value moves between its study's woods "
         "(coefficient of variation of the woods' own values; haze as a standard deviation in points), and "
         "how much wider its FWHM_R interval is once the woods are in it:")
     add("")
@@ -388,9 +252,10 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         add("")
         add(f"Table 1 as traced with `{voxel_rows[0]['other']}` (wood on "
             f"{traced_voxel(json.loads(v1.attrs['scenes'])[0]):g} µm voxels, `results/{scale_dir}/accurate/`), "
-            f"beside the same values traced with `{voxel_rows[0]['ref']}` on the same {n_real} woods with the same "
-            f"{voxel_rows[0]['rays_common']} rays each: the paired difference is the voxel method's error on each "
-            "Table 1 scene, hierarchical bootstrap 95 % intervals.")
+            f"beside the same values traced with `{voxel_rows[0]['ref']}` on the same "
+            f"{voxel_rows[0]['realisations_common']} woods (the first of Table 1's) with the same "
+            f"{voxel_rows[0]['rays_common']} rays each, both pooled over those rays: the paired difference is the "
+            "voxel method's error on each Table 1 scene, hierarchical bootstrap 95 % intervals.")
         add("")
         L.extend(method_markdown(voxel_rows))
         add("")
@@ -400,8 +265,9 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add(f"Table 1 traced again with the paper's method (`--method paper`: 2-voxel steps, the crossing at the "
         f"midpoint, a linear SVM normal on 6×6×6 voxels, wood on 0.5 µm voxels), {p1.attrs['rays']} rays on each "
-        f"of the same {p1.sizes.get('realisation', 1)} woods (`results/{scale_dir}/paper-method/`). The "
-        "differences are paired: the same woods and the same rays (ray i of a beam enters at the same point "
+        f"of the first {p1.sizes.get('realisation', 1)} of Table 1's woods (`results/{scale_dir}/paper-method/`). "
+        "Both methods are pooled over the rays both traced, and the differences are paired: the same woods and the "
+        "same rays (ray i of a beam enters at the same point "
         f"whatever the total), {methods[0]['rays_common']} per wood, hierarchical bootstrap 95 % intervals. "
         f"A difference here comes from the method alone; one between `{settings['method']}` and the published numbers that "
         "is not here comes from the wood model or the statistics.")
@@ -442,8 +308,11 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     L.extend(fibre_tip_markdown(tips))
     add("")
     tip_text = fibre_tip_sentence(tips)
+    flat = ("so its woods and numbers are the ones above at λ = 0" if tips[0]["realisations"] == woods["study-1"]
+            else f"so the rows at λ = 0 are its default wood on the first {tips[0]['realisations']} of its "
+                 f"{woods['study-1']} woods")
     add(tip_text[0].upper() + tip_text[1:] + " Table 1 keeps flat fibre ends "
-        "(λ = 0, docs/methods.md#fibre-tips), so its woods and numbers are the ones above at λ = 0.")
+        f"(λ = 0, docs/methods.md#fibre-tips), {flat}.")
     add("")
     add("## The virtual camera (Figure 5)")
     add("")
@@ -555,8 +424,10 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
             "wood (the model is a function of position).")
     add("- **Statistics.** Every number carries a 95 % interval over woods and rays; the trends above are "
         "paired differences with their own intervals. The paper reports single values.")
-    add(f"- **Wood.** The microstructure model follows docs/methods.md#the-microstructure-model; every value is {n_real} realisations "
-        "of it, pooled. Switching ray cells or vessels off leaves every other structure where it was "
+    add("- **Wood.** The microstructure model follows docs/methods.md#the-microstructure-model; every value is "
+        + (f"{min(woods.values())}" if min(woods.values()) == max(woods.values())
+           else f"{min(woods.values())}-{max(woods.values())}")
+        + " realisations of it (its study's woods), pooled. Switching ray cells or vessels off leaves every other structure where it was "
         "(tests/test_microstructure.py), so studies 5-1 and 5-2 change one factor each.")
     fine = fine_voxel_sentence(fine_voxel_rows(results, n_boot=n_boot))
     add(_convergence_sentence(results, fine_done=bool(fine), of_voxels=settings["method"] == "exact"))

@@ -15,7 +15,8 @@ FLOORS = [
     {"pipeline.microstructure"},
     {"pipeline.optics"},
     {"pipeline.limits", "pipeline.study", "pipeline.camera"},
-    {"pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.inventory", "pipeline.trace_job",
+    {"pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.report_tables", "pipeline.inventory",
+     "pipeline.trace_job",
      "pipeline.cluster", "pipeline.design"},
     {"pipeline.cli", "pipeline.__main__"},
 ]

@@ -48,6 +48,11 @@ def test_a_target_is_met_only_when_every_asked_interval_is_narrow_enough():
     assert Target(fwhm_deg=0.3).met(s) and not Target(fwhm_deg=0.28).met(s)
     assert not Target(haze=0.01, fwhm_deg=0.28).met(s)
     assert not Target(haze=0.5).met({**s, "haze_ci": [float("nan"), float("nan")]})
+    # Relative to FWHM_R itself: ±0.29° on 2.3° is ±12.6 %.
+    s["fwhm_r_deg"] = 2.3
+    assert Target(fwhm_r_rel=0.13).met(s) and not Target(fwhm_r_rel=0.12).met(s)
+    assert Target(haze=0.01, fwhm_r_rel=0.12).shortfall(s) == pytest.approx(0.29 / 2.3 / 0.12)
+    assert not Target(fwhm_r_rel=0.5).met({**s, "fwhm_r_deg": float("nan")})
 
 
 def test_trace_to_a_target_doubles_the_rays_and_equals_one_trace_of_that_many(capsys):
@@ -88,7 +93,10 @@ def test_bad_targets_are_one_line_exit_2(args, message, capsys):
 @pytest.mark.parametrize("target, message", [
     ("0", "`target_ci.haze` must be a number in (0, 0.5], got 0"),
     ("{haze: 0.01, wobble: 1}", "unknown key `target_ci.wobble`"),
-    ("{max_rays: 1000}", "`target_ci` must give `haze` or `fwhm_deg`"),
+    ("{max_rays: 1000}", "`target_ci` must give `haze`, `fwhm_deg` or `fwhm_r_rel`"),
+    ("{haze: 0.1, over: realisations}", "`target_ci.over` must be `rays` (more rays) or `woods`"),
+    ("{fwhm_r_rel: 3}", "`target_ci.fwhm_r_rel` must be a number in (0, 1], got 3"),
+    ("{haze: 0.1, over: woods, max_realisations: 0}", "`target_ci.max_realisations` must be a positive integer"),
     ("{haze: 0.1, max_rays: 1.5}", "`target_ci.max_rays` must be a positive integer, got 1.5"),
 ])
 def test_bad_target_ci_in_a_study_is_named(tmp_path, target, message):
@@ -123,3 +131,57 @@ def test_a_study_traced_to_a_target_reuses_its_shards_and_equals_a_study_of_that
     other = xr.open_zarr(tmp_path / "r" / "plain.zarr", consolidated=False)
     for name in ("FWHM_R", "FWHM_L", "haze", "haze_ci_lower", "theta_r"):
         assert np.array_equal(ds[name].values, other[name].values), name
+
+
+WOODS = STUDY.replace("realisations: 1", "realisations: 2").replace("rays: 200", "rays: 40").replace(
+    "beam_um: 100", "beam_um: 60").replace("thickness_mm: 0.3", "thickness_mm: 0.08")
+
+
+def test_a_study_traced_to_a_target_over_woods_adds_woods_and_equals_a_study_of_that_many(tmp_path, capsys):
+    """More woods, not more rays, narrow the interval with the woods: the study is traced on as
+    many woods as its widest interval asks for (the first ones reused), and equals the same study
+    with that many realisations and no target, bit for bit."""
+    path = tmp_path / "t.yaml"
+    path.write_text(WOODS.replace("{target}", "{haze: 0.06, over: woods, max_realisations: 12}"))
+    args = ["--cache", str(tmp_path / "c"), "--results", str(tmp_path / "r"), "--shard-rays", "40",
+            "--workers", "1", "--threads", "2", "--quiet"]
+    assert main(["study", str(path), *args]) == 0
+    err = capsys.readouterr().err
+    ds = xr.open_zarr(tmp_path / "r" / "t.zarr", consolidated=False)
+    n = ds.sizes["realisation"]
+    assert f"tracing {n} woods" in err and 2 < n <= 12, err
+    assert ds.sizes["ray"] == 40 and json.loads(ds.attrs["target_ci"])["over"] == "woods"
+    half = (ds.haze_ci_upper - ds.haze_ci_lower).values / 2
+    assert ds.attrs["target_ci_met"] == int(np.all(half <= 0.06))
+    assert ds.attrs["target_ci_met"] == 1 or n == 12
+    # Each wood's shards once: the first two woods were not traced again.
+    assert len(list((tmp_path / "c" / "rays").iterdir())) == 2 * n
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(WOODS.replace("target_ci: {target}\n", "").replace("realisations: 2", f"realisations: {n}"))
+    assert main(["study", str(plain), *args]) == 0
+    other = xr.open_zarr(tmp_path / "r" / "plain.zarr", consolidated=False)
+    for name in ("FWHM_R", "FWHM_R_ci_lower", "haze", "haze_ci_upper", "theta_r", "haze_per_realisation"):
+        assert np.array_equal(ds[name].values, other[name].values), name
+    # The quick scale traces at most 5 woods: the target is not pursued beyond, and the run says so.
+    assert main(["study", str(path), *args, "--scale", "quick", "--results", str(tmp_path / "q")]) == 0
+    err = capsys.readouterr().err
+    quick = xr.open_zarr(tmp_path / "q" / "t.zarr", consolidated=False)
+    assert quick.sizes["realisation"] <= 5 and quick.attrs["target_ci_met"] == 0
+    assert "still wider than target_ci at the cap of 5 woods (quick scale): --scale paper traces to the target" in err
+
+
+def test_a_study_with_a_target_over_woods_is_costed_at_its_cap_of_woods_not_of_rays(tmp_path):
+    from pipeline.limits import study_estimate
+    from pipeline.study.spec import at_target_cap
+
+    path, plain = tmp_path / "t.yaml", tmp_path / "plain.yaml"
+    path.write_text(WOODS.replace("{target}", "{haze: 0.06, over: woods, max_realisations: 7}"))
+    plain.write_text(WOODS.replace("target_ci: {target}\n", "").replace("realisations: 2", "realisations: 7"))
+    st = load_study(path)
+    capped = at_target_cap(st)
+    assert st.realisations == 2 and capped.realisations == 7 and st.scenes[0].rays == 40
+    assert study_estimate(capped.all_scenes(), shard_rays=40).cpu_s == pytest.approx(
+        study_estimate(load_study(plain).all_scenes(), shard_rays=40).cpu_s)
+    # The quick scale traces at most 5 woods, its target too; small at most 2.
+    assert load_study(path, scale="quick").scenes[0].target.max_realisations == 5
+    assert at_target_cap(load_study(path, scale="small")).realisations == 2

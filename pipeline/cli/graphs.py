@@ -89,9 +89,9 @@ def _started(args, command: str) -> "limits.Estimate":
 
 def cmd_study(args) -> int:
     from ..study.dataset import write_dataset
-    from ..study.plan import describe_plan, plan_study, ray_sampling, report_table, summary_rows
+    from ..study.plan import describe_plan, judged, plan_study, report_table, summary_rows
     from ..study.run import run_studies
-    from ..study.spec import load_study
+    from ..study.spec import at_target_cap, load_study
 
     shard_rays = integer(args.shard_rays, "shard_rays", 1)
     if args.workers is not None:
@@ -109,7 +109,8 @@ def cmd_study(args) -> int:
     if len(set(names)) != len(names):
         raise ParameterError(f"study files must have distinct names, got {names}")
     # What could never fit is refused before planning (which lists the wood's chunks).
-    scenes = [sc for st in studies for sc in st.all_scenes()]
+    # A target over woods may trace up to its cap of woods (over rays, study_estimate takes its cap of rays).
+    scenes = [sc for st in studies for sc in at_target_cap(st).all_scenes()]
     fit = "use fewer rays, a narrower beam, larger voxels or a thinner sample"
     started = _started(args, "study")
     est = started + limits.study_estimate(scenes, shard_rays=shard_rays)
@@ -118,9 +119,11 @@ def cmd_study(args) -> int:
     plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
     todo = [plan.study.realisation(summ.scene_index, summ.realisation)
             for plan in plans for summ in plan.summaries if not summ.cached]
-    est = started + limits.study_estimate(todo, shard_rays=shard_rays)
+    more = [sc for st in studies for sc in at_target_cap(st).all_scenes() if sc.realisation >= st.realisations]
+    est = started + limits.study_estimate(todo + more, shard_rays=shard_rays)
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
-        print(f"twray study: estimate for the {len(todo)} value{'' if len(todo) == 1 else 's'} to compute: "
+        upto = f" (up to {len(more)} more at the targets' caps of woods)" if more else ""
+        print(f"twray study: estimate for the {len(todo)} value{'' if len(todo) == 1 else 's'} to compute{upto}: "
               f"{est.text()}", file=sys.stderr)
     if args.dry_run:
         for plan in plans:
@@ -133,9 +136,11 @@ def cmd_study(args) -> int:
         out = write_dataset(plan, args.results)
         st = plan.study
         target = st.scenes[0].target
+        cap = f"max_realisations {target.max_realisations}" if target and target.over == "woods" else (
+            f"max_rays {target.max_rays}" if target else "")
         met = "" if target is None else (
-            ", target_ci met" if all(target.met(ray_sampling(r)) for r in summary_rows(plan)) else
-            f", target_ci NOT met at max_rays {target.max_rays}")
+            ", target_ci met" if all(target.met(judged(target, r)) for r in summary_rows(plan)) else
+            f", target_ci NOT met at {cap}")
         print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays x {st.realisations} "
               f"realisation{'' if st.realisations == 1 else 's'}, {st.scenes[0].settings.method}{met})")
         for row in summary_rows(plan):

@@ -35,7 +35,7 @@ from .. import __version__, versions
 from ..cache import DamagedEntry, cache_key, check_json, check_npz, read_json, sound
 from ..microstructure.store import CHUNKS, WoodChunkStore, wood_record
 from ..optics.trace import next_rays
-from .spec import SCALES, Scene, Study, with_rays
+from .spec import SCALES, Scene, Study, with_realisations, with_rays
 
 N_BOOT = 200
 
@@ -256,18 +256,39 @@ def describe_plan(plan: Plan) -> list[str]:
     return lines
 
 
+WOOD_MARGIN = 1.1  # more woods than the interval's 1/sqrt(n) scaling asks for: a bootstrap over few woods is narrow
+
+
 def widen(plan: Plan) -> Study | None:
-    """The study of ``plan`` with twice the rays (at most its target's ``max_rays``) when a
-    value's interval is wider than the target; None when every value meets it, or the study
-    has no target or is at its cap.  Every value gets the same rays (the Dataset's ``ray``
-    dimension), and the shards already traced are reused: a shard's rays do not depend on
-    the total."""
+    """The study of ``plan`` traced further when a value's interval is wider than its target;
+    None when every value meets it, or the study has no target or is at its cap.
+
+    A target over rays: twice the rays (at most ``max_rays``); every value gets the same rays
+    (the Dataset's ``ray`` dimension), and the shards already traced are reused (a shard's
+    rays do not depend on the total).  A target over woods: as many wood realisations as the
+    widest interval asks for, scaled as 1/sqrt(woods) with a margin of ``WOOD_MARGIN`` (at
+    least one more, at most ``max_realisations``); the woods already traced are reused."""
     st = plan.study
     target = st.scenes[0].target
+    if target is None:
+        return None
+    rows = summary_rows(plan)
+    if target.over == "woods":
+        worst = max(target.shortfall(row) for row in rows)
+        if worst <= 1.0 or st.realisations >= target.max_realisations:
+            return None
+        want = st.realisations * worst * worst * WOOD_MARGIN if math.isfinite(worst) else 2 * st.realisations
+        return with_realisations(st, min(target.max_realisations, max(st.realisations + 1, math.ceil(want))))
     rays = st.scenes[0].rays
-    worst = [next_rays(target, rays, ray_sampling(row)) for row in summary_rows(plan)]
+    worst = [next_rays(target, rays, ray_sampling(row)) for row in rows]
     more = [n for n in worst if n is not None]
     return with_rays(st, max(more)) if more else None
+
+
+def judged(target, row: dict) -> dict:
+    """The intervals of ``row`` that ``target`` is judged on: with the woods, or (over rays)
+    those of the ray sampling alone."""
+    return row if target.over == "woods" else ray_sampling(row)
 
 
 def summary_rows(plan: Plan) -> list[dict]:

@@ -13,6 +13,7 @@ A study file declares a base scene and one parameter to vary::
     beam_um: 150
     voxel_um: 0.5
     realisations: 5          # woods per value: seeds seed, seed + 1, ...
+    target_ci: {haze: 0.01, fwhm_r_rel: 0.03, over: woods}  # optional: trace more woods until met
     trace: {method: exact, exit: internal, fresnel: false}
     vary: {parameter: delta_ri, values: [-0.03, -0.02, -0.01, 0.01, 0.02, 0.03]}
 
@@ -27,7 +28,7 @@ wall_um: 2}`` traces a reference lattice of exact optics
 ``r_outer_um`` or ``jitter``.
 
 The numbers are the paper's scale; ``--scale quick`` traces a twentieth of the
-rays through the same samples and woods, ``--scale small`` keeps the wood and
+rays through the same samples and at most 5 of the woods, ``--scale small`` keeps the wood and
 divides the rays, thickness and beam, and traces at most 2 realisations (see
 :data:`SCALES`).  Every value is traced on the same realisations (realisation
 r is the wood and beam of seed ``seed + r``), so differences between values
@@ -56,9 +57,9 @@ from ..params import (ParameterError, WOOD_FIELDS, WoodParams, check_voxel, coer
 # What each scale does to the paper-scale numbers of a study file.
 SCALES = {
     "paper": {"rays": 1.0, "thickness": 1.0, "beam": 1.0, "realisations": None},
-    # The paper's samples, beam and woods with a twentieth of the rays: every structure is met as in
-    # the paper, the intervals are wider (the quick start).
-    "quick": {"rays": 0.05, "thickness": 1.0, "beam": 1.0, "realisations": None},
+    # The paper's samples and beam with a twentieth of the rays and at most 5 woods: every structure
+    # is met as in the paper, the intervals are wider (the quick start).
+    "quick": {"rays": 0.05, "thickness": 1.0, "beam": 1.0, "realisations": 5},
     # A tenth of the thickness and a quarter of the beam, which can miss the ray cells entirely (tests).
     "small": {"rays": 0.1, "thickness": 0.1, "beam": 0.25, "realisations": 2},
 }
@@ -293,7 +294,8 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
     n_rays = max(1, int(round(rays * f["rays"])))
     if rays_override is not None:
         n_rays = rays_override
-    target = _target(data.get("target_ci"), n_rays, f["rays"], fail) if "target_ci" in data else None
+    target = (_target(data.get("target_ci"), n_rays, f["rays"], n_real, f["realisations"], fail)
+              if "target_ci" in data else None)
     scenes = []
     for combo in itertools.product(*(a.values for a in axes)):
         scene_vars = dict(base)
@@ -437,27 +439,53 @@ def _reference_fields(data: dict, fail) -> dict:
     return {"name": value["name"], **out}
 
 
-def _target(value, n_rays: int, factor: float, fail) -> Target:
-    """``target_ci``: a haze half-width, or {haze, fwhm_deg, max_rays} (max_rays scaled as rays)."""
+def _target(value, n_rays: int, factor: float, n_real: int, real_cap: int | None, fail) -> Target:
+    """``target_ci``: a haze half-width, or {haze, fwhm_deg, fwhm_r_rel, over, max_rays,
+    max_realisations} (max_rays scaled as rays; max_realisations at most the scale's cap)."""
     if not isinstance(value, dict):
         value = {"haze": value}
+    known = ("fwhm_deg", "fwhm_r_rel", "haze", "max_rays", "max_realisations", "over")
     for k in value:
-        if k not in ("haze", "fwhm_deg", "max_rays"):
-            fail(("target_ci", k), f"unknown key `target_ci.{k}` (known: fwhm_deg, haze, max_rays)")
+        if k not in known:
+            fail(("target_ci", k), f"unknown key `target_ci.{k}` (known: {', '.join(known)})")
     out = {}
-    for k, rule, ok in (("haze", "in (0, 0.5]", lambda v: 0 < v <= 0.5), ("fwhm_deg", "> 0 degree", lambda v: v > 0)):
+    for k, rule, ok in (("haze", "in (0, 0.5]", lambda v: 0 < v <= 0.5), ("fwhm_deg", "> 0 degree", lambda v: v > 0),
+                        ("fwhm_r_rel", "in (0, 1]", lambda v: 0 < v <= 1)):
         if k in value and value[k] is not None:
             v = value[k]
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not ok(v):
                 fail(("target_ci",), f"`target_ci.{k}` must be a number {rule}, got {v!r}")
             out[k] = float(v)
     if not out:
-        fail(("target_ci",), "`target_ci` must give `haze` or `fwhm_deg` (a 95 % CI half-width)")
-    cap = value.get("max_rays", Target.max_rays)
-    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
-        fail(("target_ci",), f"`target_ci.max_rays` must be a positive integer, got {cap!r}")
-    cap = max(n_rays, int(round(cap * factor)))
-    return Target(haze=out.get("haze"), fwhm_deg=out.get("fwhm_deg"), max_rays=cap)
+        fail(("target_ci",), "`target_ci` must give `haze`, `fwhm_deg` or `fwhm_r_rel` (a 95 % CI half-width)")
+    over = value.get("over", Target.over)
+    if over not in ("rays", "woods"):
+        fail(("target_ci", "over"), f"`target_ci.over` must be `rays` (more rays) or `woods` (more wood "
+                                    f"realisations), got {over!r}")
+    caps = {}
+    for k, default in (("max_rays", Target.max_rays), ("max_realisations", Target.max_realisations)):
+        cap = value.get(k, default)
+        if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
+            fail(("target_ci",), f"`target_ci.{k}` must be a positive integer, got {cap!r}")
+        caps[k] = cap
+    max_rays = max(n_rays, int(round(caps["max_rays"] * factor)))
+    max_real = max(n_real, min(caps["max_realisations"], real_cap) if real_cap is not None else caps["max_realisations"])
+    return Target(haze=out.get("haze"), fwhm_deg=out.get("fwhm_deg"), fwhm_r_rel=out.get("fwhm_r_rel"), over=over,
+                  max_rays=max_rays, max_realisations=max_real)
+
+
+def with_realisations(study: Study, realisations: int) -> Study:
+    """``study`` traced on ``realisations`` woods (the first ones are those it had)."""
+    return dataclasses.replace(study, realisations=realisations)
+
+
+def at_target_cap(study: Study) -> Study:
+    """``study`` on as many woods as its target may trace (a target over woods: what an estimate
+    must cover), else ``study`` itself."""
+    target = study.scenes[0].target
+    if target is None or target.over != "woods" or target.max_realisations <= study.realisations:
+        return study
+    return with_realisations(study, target.max_realisations)
 
 
 def with_rays(study: Study, rays: int) -> Study:
