@@ -204,6 +204,29 @@ def test_rays_that_leave_their_region_go_on_as_if_it_had_held_them(preset, chang
     assert (wide["status"] == interface.TRANSMITTED).sum() > 8
 
 
+def test_a_ray_in_a_vessel_with_nothing_else_listed_gets_a_region_holding_the_point_it_needs(monkeypatch):
+    """Without ray cells, a ray that has just entered a vessel's lumen lists only the vessel: its
+    step may reach for the far face, beyond any region built around where it stands (two rays of
+    Table 1's study 5-1, wood 9, left 10,000 regions and were lost).  The next region holds the
+    point the step needed, and the rays equal those of one region holding the whole sample."""
+    import pipeline.optics.wood_surface as ws
+
+    monkeypatch.setattr(ws, "MAX_ROUNDS", 50)
+    p = build_params("birch", overrides={"ray_cells": False})
+    beam = square_beam(1000, 150.0, seed=9)
+    origins = beam.origins[[753, 906]]
+    dirs = np.tile([0.0, 1.0, 0.0], (2, 1))
+    runs = []
+    for margin in (None, 1200.0):
+        surf = WoodSurface(p, thickness_um=1000.0, seed=9, margin_um=margin)
+        runs.append((surf, surf.trace_surfaces(origins, dirs, n_wall=1.50, n_poly=1.49, max_events=100_000)))
+    (small, out), (whole, ref) = runs
+    assert small.left > 0 and whole.left == 0
+    assert np.all(out["status"] == interface.TRANSMITTED)
+    for name in ref:
+        assert np.array_equal(out[name], ref[name]), name
+
+
 def _missed_along_path(surf, origin, direction, n_wall, n_poly, per_um):
     """Trace one ray with its interfaces logged, and sample the generator's phase along every
     straight segment between them (every 1/per_um µm, the ends left out): the phase changes the

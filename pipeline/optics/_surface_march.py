@@ -263,7 +263,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
 
     A ray that leaves the region (status NEEDS_REGION) ends where its last straight segment began,
     with the state it had there (interfaces, path, evaluations, passes, phase, the primitive
-    crossed last in ``skips``), and ``stop`` where it left; traced again from there with
+    crossed last in ``skips``), and ``stop`` the point outside the region its step needed (or where
+    it stood); traced again from there with
     ``resume`` 1 (its state read from the same arrays) in a region that holds it, it goes on
     exactly as if the region had held it all along (255 in ``medium_out``: it stopped before its
     first phase was known, and starts afresh).
@@ -327,6 +328,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             seg_skip[q] = skip[q]
         st = 0
         s = 0.0
+        s_stop = -1.0  # where the ray left: the point it needed (else where it stood)
         ph0, n = surface_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
         med = np.uint8(medium_out[r]) if again else ph0
         ne += 1
@@ -414,7 +416,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                                   every)
             ne += 1
             if phb == 255:
+                # The point the step needs is the one the next region must hold: a step inside a
+                # regime surface with nothing else listed may reach for the far face.
                 st = NEEDS_REGION
+                s_stop = s_end
                 break
             if relax and not near and _regime(P[a, 0]):
                 # A long step from a regime surface A: kept where it is proven, else cut short of
@@ -604,7 +609,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
         for q in range(3):
             out_pos[r, q] = X[q]
             out_dir[r, q] = d[q]
-            stop[r, q] = X[q] + s * d[q]
+            stop[r, q] = X[q] + (s_stop if s_stop >= 0.0 else s) * d[q]
         status[r] = st
         events[r] = ev
         path[r] = length
