@@ -206,7 +206,9 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         f"all their transmitted rays, and haze the share of them deviating more than {HAZE_ANGLE_DEG:g}°. "
         "Intervals are 95 %, from a hierarchical bootstrap (woods drawn with replacement, then rays within each "
         "drawn wood), so they hold the variation from one wood to the next as well as the sampling of rays. The "
-        "last column is the range of the woods' own FWHM_R.")
+        "last column is the range of the woods' own FWHM_R."
+        + (" The base scene (1 mm, ΔRI 0.01) is a value of several studies; each pools it over its own woods, so "
+           "its rows differ, within their intervals." if len(set(woods.values())) > 1 else ""))
     add("")
     L.extend(table1_markdown(rows))
     add("")
