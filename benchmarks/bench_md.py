@@ -84,9 +84,14 @@ def render(doc: dict) -> str:
         if tp:
             cpu = f", {tp['cpu_s'] / 60:.1f} CPU-min" if "cpu_s" in tp else ""
             how = f" ({tp['how']})" if "how" in tp else ""
+            warm = f", warm (nothing to compute) {tp['warm_s']:.1f} s" if "warm_s" in tp else ""
+            woods = tp.get("realisations")
+            on = (f" on {min(woods.values())}-{max(woods.values())} woods a study" if isinstance(woods, dict)
+                  else f" on {woods} woods" if woods else "")
             md.append(f"At paper scale (`make table1 SCALE=paper YES=1`, `make bench-table1-paper`) with "
-                      f"`{tp.get('method', 'accurate')}`, cold: {tp['cold_s'] / 60:.1f} min{cpu}{how}.")
-            for key, label in (("exact_version_3_with_reference_counts",
+                      f"`{tp.get('method', 'accurate')}`{on}, cold: {tp['cold_s'] / 60:.1f} min{cpu}{warm}{how}.")
+            for key, label in (("five_woods", "On 5 woods a study, before Table 1 traced woods to its target"),
+                               ("exact_version_3_with_reference_counts",
                                 "Before the evaluations ran without reference counts (the same rays)"),
                                ("exact_version_3_before_borrowed_arrays",
                                 "Before the march borrowed its arrays (the same rays)"),
