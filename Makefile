@@ -4,8 +4,9 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
-# quick: the paper's samples and woods, a twentieth of the rays (minutes); paper: the committed
-# results (SCALE=paper YES=1); small: a tenth of the thickness (tests).
+# quick: the paper's samples, at most 5 woods, a twentieth of the rays (minutes); paper: the committed
+# results (SCALE=paper YES=1; Table 1 on as many woods as its target asks for, about 17 min on 2 cores);
+# small: a tenth of the thickness (tests).
 SCALE ?= quick
 SCHEDULER ?=
 STUDIES := study-1 study-2 study-3 study-4 study-5-1 study-5-2 study-6

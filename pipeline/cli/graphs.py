@@ -138,9 +138,10 @@ def cmd_study(args) -> int:
         target = st.scenes[0].target
         cap = f"max_realisations {target.max_realisations}" if target and target.over == "woods" else (
             f"max_rays {target.max_rays}" if target else "")
+        unmet = (f", target_ci NOT met at {cap}" if st.scale == "paper"
+                 else f", target_ci not met at the {st.scale} scale's {cap}")
         met = "" if target is None else (
-            ", target_ci met" if all(target.met(judged(target, r)) for r in summary_rows(plan)) else
-            f", target_ci NOT met at {cap}")
+            ", target_ci met" if all(target.met(judged(target, r)) for r in summary_rows(plan)) else unmet)
         print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays x {st.realisations} "
               f"realisation{'' if st.realisations == 1 else 's'}, {st.scenes[0].settings.method}{met})")
         for row in summary_rows(plan):
