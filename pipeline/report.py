@@ -375,7 +375,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("| item | command | cost on 2 cores (from `results/bench.json` or the dataset) |")
     add("|---|---|---|")
     if "table1_quick" in st:
-        add(f"| Table 1, the quick start (the paper's samples and woods, 50 rays a wood) | `make table1` | "
+        add(f"| Table 1, the quick start (the paper's samples, 5 woods, 50 rays a wood) | `make table1` | "
             f"{_minutes(st['table1_quick']['cold_s'])} cold, {_minutes(st['table1_quick']['warm_s'])} when cached |")
     add(f"| Table 1, a tenth of the thickness (tests) | `make table1 SCALE=small` | "
         f"{_minutes(st['table1_small']['cold_s'])} cold, {_minutes(st['table1_small']['warm_s'])} when cached |")
@@ -401,8 +401,8 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     if "design_paper" in st:
         add(f"| design maps | `make design SCALE=paper YES=1` | {_minutes(st['design_paper']['cold_s'])} cold |")
     add(f"| speed against accuracy | `make tradeoff` | {_minutes(float(tradeoff.attrs['seconds']))} |")
-    add("| figures | `make figures` | about 2.5 min (sections and trajectories are computed) |")
-    add("| this report | `make report` | about 40 s (the bootstraps of the effects and the methods) |")
+    add("| figures | `make figures` | about 1 min (sections and trajectories are computed) |")
+    add("| this report | `make report` | about 30 s (the bootstraps of the effects and the methods) |")
     add("")
     add("## Where twray differs from the paper, and why")
     add("")
