@@ -89,7 +89,7 @@ def _started(args, command: str) -> "limits.Estimate":
 
 def cmd_study(args) -> int:
     from ..study.dataset import write_dataset
-    from ..study.plan import describe_plan, judged, plan_study, report_table, summary_rows
+    from ..study.plan import describe_plan, plan_study, report_table, summary_rows, target_met
     from ..study.run import run_studies
     from ..study.spec import at_target_cap, load_study
 
@@ -141,7 +141,7 @@ def cmd_study(args) -> int:
         unmet = (f", target_ci NOT met at {cap}" if st.scale == "paper"
                  else f", target_ci not met at the {st.scale} scale's {cap}")
         met = "" if target is None else (
-            ", target_ci met" if all(target.met(judged(target, r)) for r in summary_rows(plan)) else unmet)
+            ", target_ci met" if target_met(target, summary_rows(plan)) else unmet)
         print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays x {st.realisations} "
               f"realisation{'' if st.realisations == 1 else 's'}, {st.scenes[0].settings.method}{met})")
         for row in summary_rows(plan):

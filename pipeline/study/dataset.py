@@ -9,7 +9,7 @@ import numpy as np
 
 from .. import __version__
 from ..publish import is_current, publish_dataset
-from .plan import N_BOOT, Plan, judged, read_entry
+from .plan import N_BOOT, Plan, read_entry, target_met
 from .spec import scene_record
 from .tasks import load_rays
 
@@ -144,7 +144,7 @@ def study_dataset(plan: Plan):
     ds.attrs["beam_traced_um"] = st.scenes[0].beam_um
     if target is not None:
         ds.attrs["target_ci"] = json.dumps(target.to_dict())
-        ds.attrs["target_ci_met"] = int(all(target.met(judged(target, s)) for s in pooled))
+        ds.attrs["target_ci_met"] = int(target_met(target, pooled))
     return ds
 
 

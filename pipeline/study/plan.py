@@ -291,6 +291,11 @@ def judged(target, row: dict) -> dict:
     return row if target.over == "woods" else ray_sampling(row)
 
 
+def target_met(target, rows) -> bool:
+    """Whether every value's row (pooled numbers) meets ``target``."""
+    return all(target.met(judged(target, row)) for row in rows)
+
+
 def summary_rows(plan: Plan) -> list[dict]:
     """The pooled numbers of each value (its realisations pooled), with the value and its
     "dimension=value" label, in the study's order."""

@@ -10,7 +10,7 @@ final plans.
 from __future__ import annotations
 
 from .graph import compute
-from .plan import Plan, judged, plan_study, summary_rows, widen
+from .plan import Plan, plan_study, summary_rows, target_met, widen
 
 
 def run_studies(plans: list[Plan], cache_dir, *, open_client, shard_rays: int, progress: str = "off",
@@ -50,7 +50,7 @@ def _say_unmet(plans: list[Plan], log) -> None:
     unmet: dict[str, list[str]] = {}
     for p in plans:
         target = p.study.scenes[0].target
-        if target is None or all(target.met(judged(target, row)) for row in summary_rows(p)):
+        if target is None or target_met(target, summary_rows(p)):
             continue
         woods = target.over == "woods"
         cap = f"{target.max_realisations} woods" if woods else f"{target.max_rays} rays"
@@ -60,4 +60,3 @@ def _say_unmet(plans: list[Plan], log) -> None:
     for why, names in unmet.items():
         log(f"twray study: {', '.join(names)}: {'an interval is' if len(names) == 1 else 'intervals are'} still "
             f"wider than target_ci {why}")
-
