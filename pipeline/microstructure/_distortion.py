@@ -44,9 +44,10 @@ def _gauss(g, X0, w, rv, bcut, B):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _add_separable(out, gR, gT, R0, T0_, DR, DT, anyR, anyT, k2, k3, k4, sign, rv, bcut, BR, BT):
+def _add_separable(out, gR, gT, R0, T0_, DR, DT, anyR, anyT, k2, k3, k4, sign, rv, bcut, BR, BT, S):
     """Add one dipole (docs/methods.md#distortion) to the tile grid ``out`` (2, n, n), given its sigmoid
-    differences along R and T (:func:`_sig_diff`, which depend on the dipole's position alone).
+    differences along R and T (:func:`_sig_diff`, which depend on the dipole's position alone);
+    ``S``: n scratch.
 
     d(a, b) = [σ(k1 a) − σ(k2 a)]·(k4/k2)·exp(−b²/(2 (k3/k2)²)), in reference
     voxels; u uses (a, b) = (R, T), v uses (T, R).  Separable, so the grid
@@ -58,33 +59,43 @@ def _add_separable(out, gR, gT, R0, T0_, DR, DT, anyR, anyT, k2, k3, k4, sign, r
     amp = sign * k4 / k2 * rv
     n = gR.shape[0]
     # Only the span of nonzero factors: adding a zero product leaves a sum that started at +0 as
-    # it is, bit for bit, so the grid is the full outer product's.
+    # it is, bit for bit, so the grid is the full outer product's.  The rows are added over
+    # zero-based views so that the loops vectorise (each lane the scalar product and sum).
     if anyR:
         _gauss(gT, T0_, w, rv, bcut, BT)
         b0, b1 = _nonzero_span(BT)
         if b1 > b0:
+            bt = BT[b0:b1]
             for i in range(n):
                 if DR[i] != 0.0:
-                    ar = DR[i] * amp
-                    for j in range(b0, b1):
-                        out[0, i, j] += ar * BT[j]
+                    _axpy(out[0, i, b0:b1], DR[i] * amp, bt)
     if anyT:
         _gauss(gR, R0, w, rv, bcut, BR)
         t0, t1 = _nonzero_span(DT)
-        for i in range(n):
-            if BR[i] != 0.0:
-                for j in range(t0, t1):
-                    out[1, i, j] += (DT[j] * amp) * BR[i]
+        if t1 > t0:
+            dt = S[:t1 - t0]
+            for j in range(t1 - t0):
+                dt[j] = DT[t0 + j] * amp
+            for i in range(n):
+                if BR[i] != 0.0:
+                    _axpy(out[1, i, t0:t1], BR[i], dt)
     return 1
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _axpy(y, a, x):
+    """y[j] += x[j]·a for every j (the product as written, then the sum)."""
+    for j in range(y.shape[0]):
+        y[j] += x[j] * a
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _add_dipole(out, gR, gT, R0, T0_, k1, k2, k3, k4, sign, rv, acut, bcut, work):
-    """:func:`_add_separable` with the dipole's own sigmoid differences (``work``: 4 × n scratch)."""
+    """:func:`_add_separable` with the dipole's own sigmoid differences (``work``: 5 × n scratch)."""
     anyR = _sig_diff(gR, R0, k1, k2, rv, acut, work[0])
     anyT = _sig_diff(gT, T0_, k1, k2, rv, acut, work[1])
     return _add_separable(out, gR, gT, R0, T0_, work[0], work[1], anyR, anyT, k2, k3, k4, sign, rv, bcut,
-                          work[2], work[3])
+                          work[2], work[3], work[4])
 
 
 @njit(inline="always", cache=True, error_model="numpy")
@@ -154,7 +165,7 @@ def distortion_tile(seed, M, a, b, out, stats, large, large_box):
     vessels = np.empty((4096, 5), np.int64)
     nv = vessels_in_region(seed, M, n_lo, n_hi, m_lo, m_hi, vessels)
     terms = 0
-    work = np.empty((4, n))
+    work = np.empty((5, n))
     if amp > 0.0:
         # A fibre dipole's sigmoid differences depend on its column (R) and row (T) alone: once each.
         DR = np.empty((n_hi - n_lo + 1, n))
@@ -173,7 +184,7 @@ def distortion_tile(seed, M, a, b, out, stats, large, large_box):
                     k4 *= 0.3
                 sign = 1.0 if uniform(seed, _rng.DIPOLE_SIGN, nn, m, 0) < 0.5 else -1.0
                 terms += _add_separable(uv, gR, gT, nn * c, m * c, DR[nn - n_lo], DT, anyR[nn - n_lo], anyT,
-                                        0.06, k3, k4, sign, rv, 4.0 * k3 / 0.06, work[2], work[3])
+                                        0.06, k3, k4, sign, rv, 4.0 * k3 / 0.06, work[2], work[3], work[4])
         for v in range(nv):
             terms += _add_dipole(uv, gR, gT, vessels[v, 0] * c, vessels[v, 1] * c,
                                  0.06, 0.055, 2.0, 15.0 * amp, 1.0, rv, 250.0, 4.0 * 2.0 / 0.055, work)

@@ -10,6 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numba import njit
 
+from . import _constants as K
 from ._surface_cells import new_cache
 from .model import N_STATS, _patch, _plies, _tile, model_constants, tile_range
 from ._surface_rows import MAX_PRIMS, N_COLS, VBUCKET, VESSEL_REACH, rates
@@ -20,12 +21,24 @@ def lipschitz_of_pull_back(patch: np.ndarray, G: float) -> float:
     """A bound of ‖∂p/∂X‖ for the bilinear pull-back p = X − d(X) on ``patch``: 1 + the largest
     Frobenius norm of ∂d/∂X over its cells (each partial derivative of a bilinear cell lies between
     its two edge differences)."""
-    dx = np.abs(np.diff(patch, axis=0)) / G  # (ni-1, nj, 2): ∂d/∂R on cell edges
-    dy = np.abs(np.diff(patch, axis=1)) / G
-    mx = np.maximum(dx[:, :-1], dx[:, 1:])  # per cell
-    my = np.maximum(dy[:-1], dy[1:])
-    frob = np.sqrt((mx ** 2).sum(axis=2) + (my ** 2).sum(axis=2))
-    return float(1.0 + frob.max()) * (1.0 + 1e-12)
+    return _lipschitz(np.ascontiguousarray(patch, np.float64), float(G))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _lipschitz(patch, G):
+    best = 0.0
+    for i in range(patch.shape[0] - 1):
+        for j in range(patch.shape[1] - 1):
+            s = 0.0  # ∂d/∂R²: each component the larger of its two edge differences, squared
+            for c in range(2):
+                x = max(abs(patch[i + 1, j, c] - patch[i, j, c]) / G, abs(patch[i + 1, j + 1, c] - patch[i, j + 1, c]) / G)
+                s = x * x if c == 0 else s + x * x
+            t = 0.0  # ∂d/∂T², the same
+            for c in range(2):
+                y = max(abs(patch[i, j + 1, c] - patch[i, j, c]) / G, abs(patch[i + 1, j + 1, c] - patch[i + 1, j, c]) / G)
+                t = y * y if c == 0 else t + y * y
+            best = max(best, math.sqrt(s + t))
+    return (1.0 + best) * (1.0 + 1e-12)
 
 
 @functools.lru_cache(maxsize=8192)
@@ -39,8 +52,6 @@ def _patch_lipschitz(seed, M, gi0: int, gj0: int, shape, G: float) -> np.ndarray
     (116 µm for birch) of any point of the tile, further than any step goes (a reach row caps
     steps at a cell pitch).  It depends on the point's tile alone, not on the region, so a ray's
     steps do not depend on the rays traced beside it."""
-    from . import _constants as K
-
     a0, b0 = gi0 // K.TILE, gj0 // K.TILE
     na, nb = (shape[0] - 1) // K.TILE, (shape[1] - 1) // K.TILE
     key = M.tobytes()
@@ -70,25 +81,16 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_r
     padded to the largest ply.  Every ply of the slab is listed (a point's rows name the plies around
     it), each with its grid over the part of ``t_range`` it holds (none: a point there is outside the
     region)."""
-    from . import _constants as K
     from ._vessels import vessels_in_region
 
     M = model_constants(params)
-    t_range = (0.0, thickness_um) if t_range is None else t_range
     c = params.node_pitch_um
     G = c / K.GRID_PER_PITCH
     stats = np.zeros(N_STATS, np.int64)
-    plies = [p for p in _plies(params, seed, 0.0, thickness_um) if p[7] < thickness_um or p[0] == 0]
+    plies = _ply_extents(params, seed, thickness_um, r_range, l_range, t_range)
     rows, seeds, spans, patches, origins, lams, ves, nvs, boxes = [], [], [], [], [], [], [], [], []
-    for _, cs, sn, oR, oT, oL, ply_seed, t0, t1 in plies:
-        corners = [cs * r + sn * l + oR for r in r_range for l in l_range]
-        r_lo, r_hi = min(corners), max(corners)
-        tt_lo, tt_hi = max(t0, 0.0, t_range[0]) + oT, min(t1, thickness_um, t_range[1]) + oT
-        tt_hi = max(tt_hi, tt_lo)
-        pseed = np.uint64(ply_seed)
-        a0, a1, b0, b1 = tile_range(M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0)
-        # the patch's tiles and their neighbours (the pull-back bounds read them)
-        _warm_tiles(pseed, M, [(a, b) for a in range(a0 - 1, a1 + 2) for b in range(b0 - 1, b1 + 2)], G, threads)
+    for (_, cs, sn, oR, oT, oL, _, t0, t1), pseed, r_lo, r_hi, tt_lo, tt_hi in plies:
+        _warm_tiles(pseed, M, _tiles_read(M, r_lo, r_hi, tt_lo, tt_hi), G, threads)
         patch, gi0, gj0 = _patch(pseed, M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0, stats)
         dmax = float(np.abs(patch).max())
         box = (math.floor((r_lo - dmax) / c) - 2, math.ceil((r_hi + dmax) / c) + 2,
@@ -132,9 +134,46 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_r
         "origins": np.array(origins, np.int64), "lipschitz": LT, "vessels": V,
         "n_vessels": np.array(nvs, np.int64), "boxes": np.array(boxes, np.int64),
         "ply_thickness": float(params.ply_thickness_um) if params.laminate is not None else math.inf,
-        "first_ply": int(plies[0][0]), "bucket_shape": np.array([b[0] for b in buckets], np.int64),
+        "first_ply": int(plies[0][0][0]), "bucket_shape": np.array([b[0] for b in buckets], np.int64),
         "bucket_ptr": BP, "bucket_list": BL,
     }
+
+
+def _ply_extents(params, seed: int, thickness_um: float, r_range, l_range, t_range) -> list:
+    """Per ply of the slab T ∈ [0, thickness] (:func:`~pipeline.microstructure.model._plies`), its
+    tuple, seed and the box (R lo, R hi, T lo, T hi) [µm, the ply's own axes] the region
+    R ∈ r_range, L ∈ l_range, T ∈ t_range (None: the slab) covers in it."""
+    t_range = (0.0, thickness_um) if t_range is None else t_range
+    out = []
+    for ply in _plies(params, seed, 0.0, thickness_um):
+        _, cs, sn, oR, oT, _, ply_seed, t0, t1 = ply
+        if not (t0 < thickness_um or ply[0] == 0):
+            continue
+        corners = [cs * r + sn * l + oR for r in r_range for l in l_range]
+        tt_lo, tt_hi = max(t0, 0.0, t_range[0]) + oT, min(t1, thickness_um, t_range[1]) + oT
+        out.append((ply, np.uint64(ply_seed), min(corners), max(corners), tt_lo, max(tt_hi, tt_lo)))
+    return out
+
+
+def _tiles_read(M, r_lo, r_hi, tt_lo, tt_hi) -> list:
+    """The distortion tiles (a, b) a ply's box reads: its patch's and their neighbours (the
+    pull-back bounds read them)."""
+    a0, a1, b0, b1 = tile_range(M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0)
+    return [(a, b) for a in range(a0 - 1, a1 + 2) for b in range(b0 - 1, b1 + 2)]
+
+
+def warm_regions(params, seed: int, thickness_um: float, regions, threads: int) -> None:
+    """Compute the distortion tiles (and pull-back bounds) that the regions ``regions`` [(r_range,
+    l_range, t_range)] read, all at once on ``threads`` threads, so that building them finds every
+    tile cached; the same values as :func:`region_context` computes one by one."""
+    M = model_constants(params)
+    G = params.node_pitch_um / K.GRID_PER_PITCH
+    todo = {}
+    for r, l, t in regions:
+        for _, pseed, *box in _ply_extents(params, seed, thickness_um, r, l, t):
+            todo.setdefault(int(pseed), set()).update(_tiles_read(M, *box))
+    for pseed, tiles in todo.items():
+        _warm_tiles(np.uint64(pseed), M, sorted(tiles), G, threads)
 
 
 def _vessel_buckets(vessels: np.ndarray, box) -> tuple:

@@ -589,6 +589,15 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 X[q] += t_go * d[q]
             length += t_go
             s = 0.0
+            # The new segment starts at the lattice point it left from, whose rows are at hand
+            # (X + 0·d is that point bit for bit, so they are the rows an evaluation would give).
+            if new != med:
+                n = nb
+                _copy_rows(P, Pb, nb)
+            else:
+                n = na
+                _copy_rows(P, Pa, na)
+            have = True
             med = new
             prev_ok = False  # a new segment
             for q in range(3):
@@ -602,7 +611,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 j = _find(Pb, nb, key) if t_go == hi else _find(Pa, na, key)
                 if j < 0 or (Pb[j, 5] if t_go == hi else Pa[j, 5]) <= 0.0:
                     skip[0] = 0.0
-            seg_ne = ne
+            seg_ne = ne - 1  # the rows at hand count as the segment's first evaluation (resumed, it makes it)
             seg_npass = npass
             for q in range(5):
                 seg_skip[q] = skip[q]

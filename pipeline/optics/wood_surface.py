@@ -13,11 +13,12 @@ of it, so the result does not depend on the regions.
 from __future__ import annotations
 
 import json
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..microstructure.region import context_tuple, phases, region_context
+from ..microstructure.region import context_tuple, phases, region_context, warm_regions
 from ..microstructure.surface import new_cache
 from ..params import WoodParams
 from ._surface_march import HIT, NEEDS_REGION, TOL, march, new_work
@@ -89,6 +90,61 @@ class WoodSurface:
             groups.append((todo[m], (r, l, (max(t[0], 0.0), min(t[1], self.thickness_um)))))
         return groups
 
+    def _round(self, groups, start, heading, ids, out, skips, stop, log, resume, log_events, optics) -> list:
+        """Trace each group (rays, region box) of a round in its region; the rays of each that left it.
+
+        Rays are independent and a ray's numbers do not depend on its region, so the work is cut
+        as the threads are best used: a lone group's rays in slices side by side (its region's
+        tiles computed on the threads first); several groups (the rays that left the regions
+        before) with all their regions' tiles computed at once, then their slices, largest
+        groups first, on the threads, each region built by the first slice that needs it and let
+        go after its last."""
+        if len(groups) > 1:
+            warm_regions(self.params, self.seed, self.thickness_um, [box for _, box in groups], self.threads)
+        work = []  # per group: rays, box, result arrays, [context, slices left], lock
+        jobs = []
+        for todo, box in sorted(groups, key=lambda g: -g[0].size):
+            k = todo.size
+            res = [out[name][todo] for name in NAMES] + [skips[todo], stop[todo], log[todo] if log_events else log]
+            cuts = np.linspace(0, k, min(self.threads, max(1, k // 16)) + 1).astype(int)
+            work.append((todo, box, res, [None, len(cuts) - 1], threading.Lock()))
+            jobs += [(len(work) - 1, lo, hi) for lo, hi in zip(cuts[:-1], cuts[1:])]
+        if len(work) == 1:  # the lone region's tiles on the threads, before its slices
+            work[0][3][0] = self._box(*work[0][1])
+
+        def run(job):
+            todo, box, res, held, lock = work[job[0]]
+            lo, hi = job[1], job[2]
+            with lock:
+                if held[0] is None:
+                    held[0] = self._box(*box)
+                ctx = held[0]
+            sel = todo[lo:hi]
+            march(start[sel], heading[sel], ids[sel], self.thickness_um, *optics, ctx,
+                  self.hit, self.tol, self.h_grad, self.step_scale, *(a[lo:hi] for a in res[:8]),
+                  res[10][lo:hi] if log_events else res[10], new_cache(), resume[sel],
+                  res[8][lo:hi], res[9][lo:hi], new_work())
+            with lock:
+                held[1] -= 1
+                if held[1] == 0:
+                    held[0] = None  # its last slice: the region is let go
+
+        if self.threads > 1 and len(jobs) > 1:
+            with ThreadPoolExecutor(min(self.threads, len(jobs))) as pool:
+                list(pool.map(run, jobs))  # the kernel releases the GIL
+        else:
+            for job in jobs:
+                run(job)
+        left = []
+        for todo, _, res, _, _ in work:
+            for name, arr in zip(NAMES, res):
+                out[name][todo] = arr
+            skips[todo], stop[todo] = res[8], res[9]
+            if log_events:
+                log[todo] = res[10]
+            left.append(todo[res[2] == NEEDS_REGION])
+        return left
+
     def entry_phase(self, origins_um: np.ndarray) -> np.ndarray:
         """The phase (1 wall, 0 polymer) at each entry point (T taken as 0)."""
         pos = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
@@ -116,33 +172,8 @@ class WoodSurface:
         groups = [(np.arange(n), self._bounds(pos0, base))]
         rounds = 0
         while groups:
-            left = []
-            for todo, box in groups:  # each region built when its rays are traced, then let go
-                ctx = self._box(*box)
-                k = todo.size
-                res = [out[name][todo] for name in NAMES] + [skips[todo], stop[todo], log[todo] if log_events else log]
-
-                def run(lo, hi, todo=todo, ctx=ctx, res=res):
-                    # Rays are independent: slices of the beam run side by side (the kernel releases the GIL).
-                    march(start[todo[lo:hi]], heading[todo[lo:hi]], ids[todo[lo:hi]], self.thickness_um,
-                          float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed), ctx,
-                          self.hit, self.tol, self.h_grad, self.step_scale, *(a[lo:hi] for a in res[:8]),
-                          res[10][lo:hi] if log_events else res[10], new_cache(), resume[todo[lo:hi]],
-                          res[8][lo:hi], res[9][lo:hi], new_work())
-
-                parts = min(self.threads, max(1, k // 16))
-                cuts = np.linspace(0, k, parts + 1).astype(int)
-                if parts > 1:
-                    with ThreadPoolExecutor(parts) as pool:
-                        list(pool.map(run, cuts[:-1], cuts[1:]))
-                else:
-                    run(0, k)
-                for name, arr in zip(NAMES, res):
-                    out[name][todo] = arr
-                skips[todo], stop[todo] = res[8], res[9]
-                if log_events:
-                    log[todo] = res[10]
-                left.append(todo[res[2] == NEEDS_REGION])
+            left = self._round(groups, start, heading, ids, out, skips, stop, log, resume, log_events,
+                               (float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed)))
             todo = np.concatenate(left)
             # A ray that left goes on from its last segment's start, in a region around that
             # segment reaching twice as far ahead as the last one did.
