@@ -140,8 +140,10 @@ def render(doc: dict) -> str:
                       f"{r['warm']['us_per_interface']:.1f} |")
         z = e["lazy_1_5mm"]
         md += ["", f"1000 rays through 1.5 mm of birch with `exact`, cold, {z['threads']} threads: "
-               f"{z['seconds']:.1f} s, of which {z['seconds_building_regions']:.1f} s building the region "
-               f"(distortion tiles, vessels; {z['regions']} regions); {z['interfaces']:,} interfaces, "
+               f"{z['seconds']:.2f} s ({z['cpu_seconds']:.1f} CPU-s), of which {z['seconds_first_region']:.2f} s "
+               f"building the first region before any ray is traced; {z['regions']} regions, "
+               f"{z['tiles']} distortion tiles ({z['tile_seconds_summed']:.2f} s summed over the threads); "
+               f"{z['interfaces']:,} interfaces, "
                f"{z['us_per_interface_wall']:.1f} µs each on the wall clock, {z['evaluations_per_interface']:.1f} "
                f"point evaluations per interface; peak RSS {z['peak_rss_mb']:.0f} MiB; no voxel generated."]
         v = e.get("lazy_1_5mm_accurate")
