@@ -54,3 +54,31 @@ def test_vessel_layout_does_not_depend_on_the_region_asked_for():
     # Vessels keep clear of ray rows.
     for m in rows[:, 1]:
         assert not _ray_cells.near_ray(seed, M, m, _constants.VRAY_CLEAR)
+
+
+def test_the_pull_back_bound_holds_between_any_two_points_of_a_tile_and_is_nearly_reached():
+    """`exact` steps blindly by clearance / (the pull-back's Lipschitz bound): the bilinear
+    pull-back of a real distortion tile never moves two points of the tile apart faster than the
+    bound says, and the bound is not loose (its excess over 1 mostly reached), or steps would be
+    needlessly short."""
+    from pipeline.microstructure._distortion import pull_back
+    from pipeline.microstructure.model import _tile
+    from pipeline.microstructure.region import lipschitz_of_pull_back
+
+    M = model_constants(build_params("birch"))
+    G = M[_constants.PITCH] / _constants.GRID_PER_PITCH
+    span = _constants.TILE * G
+    rng = np.random.default_rng(5)
+    for a, b in [(0, 0), (3, -2), (-7, 11)]:
+        tile, _ = _tile(4, M.tobytes(), a, b)
+        bound = lipschitz_of_pull_back(tile, G)
+        worst = 0.0
+        for _ in range(4000):
+            p = np.array([a, b]) * span + rng.uniform(0.02, 0.98, 2) * span
+            q = p + rng.normal(size=2) * rng.choice([1e-3, 0.1, 1.0, 5.0])
+            if not (a * span <= q[0] < (a + 1) * span and b * span <= q[1] < (b + 1) * span):
+                continue
+            P = np.array(pull_back(tile, a * _constants.TILE, b * _constants.TILE, G, p[0], p[1]))
+            Q = np.array(pull_back(tile, a * _constants.TILE, b * _constants.TILE, G, q[0], q[1]))
+            worst = max(worst, np.linalg.norm(P - Q) / np.linalg.norm(p - q))
+        assert 1.0 + 0.5 * (bound - 1.0) < worst <= bound, (a, b, worst, bound)
