@@ -31,6 +31,7 @@ NAMES = ("position", "direction", "status", "events", "path", "evaluations", "pa
 FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickness (the base margin)
 AHEAD_MAX = 8.0  # a ray that leaves a region goes on in one reaching 2, 4, then at most 8 base margins ahead
 MAX_ROUNDS = 10_000  # regions a beam may need before its rays count as lost (each goes 2-8 base margins further)
+_COUNTING = threading.Lock()
 
 
 class WoodSurface:
@@ -62,7 +63,8 @@ class WoodSurface:
         return self._box(*self._bounds(pos, margin))
 
     def _box(self, r: tuple, l: tuple, t: tuple | None = None) -> tuple:
-        self.regions += 1
+        with _COUNTING:  # regions of a round are built on several threads
+            self.regions += 1
         return context_tuple(region_context(self.params, self.seed, self.thickness_um, r, l, t, threads=self.threads))
 
     def _regions(self, todo, start, stop, heading, ahead, base) -> list:
