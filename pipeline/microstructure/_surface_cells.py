@@ -204,7 +204,10 @@ def _fibre(seed, M, L, n, m, vessels, nv, NW, have, n0, m0, FErow, FJrow, CK, CV
     return flag, lo, hi, aR, aT, Nt
 
 
-@njit(**NOREF)
+# Inlined into evaluate, its one caller: as a call it was given the cache's ten arrays, five more
+# and nine numbers, some 115 words copied at every point (docs/performance.md: about 13 % of the
+# march).  The other phases (_polygon, _ray_cell) stay calls: inlined too, evaluate was slower.
+@njit(inline="always", **NOREF)
 def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, want):
     """Fibre lumens: the phase from the four candidates of the point's cell, the rows from the
     lumens that reach the 2 × 2 cells around the point (a ball of half a cell meets no other)."""

@@ -45,7 +45,8 @@ def _surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e):
                                                                           nrm, e)
 
 
-@njit(cache=True, nogil=True)
+# Inlined into _gradient (six differences a normal): a call copied the context and cache each time.
+@njit(inline="always", cache=True, nogil=True)
 def _g_of(X, d, s, lq, ctx, P, key, cache):
     """Signed function of primitive ``key`` at X + s·d (nan when it is not listed there)."""
     ph, n = surface_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, key)
