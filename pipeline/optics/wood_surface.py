@@ -32,6 +32,7 @@ FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickn
 AHEAD_MAX = 8.0  # a ray that leaves a region goes on in one reaching 2, 4, then at most 8 base margins ahead
 MAX_ROUNDS = 10_000  # regions a beam may need before its rays count as lost (each goes 2-8 base margins further)
 _COUNTING = threading.Lock()
+SLICES, SLICE_RAYS = 4, 16  # a group's rays in up to 4 slices a thread, of at least 16 rays
 
 
 class WoodSurface:
@@ -92,7 +93,8 @@ class WoodSurface:
             groups.append((todo[m], (r, l, (max(t[0], 0.0), min(t[1], self.thickness_um)))))
         return groups
 
-    def _round(self, groups, start, heading, ids, out, skips, stop, log, resume, log_events, optics) -> list:
+    def _round(self, groups, start, heading, ids, out, skips, stop, log, resume, log_events, optics,
+               memos) -> list:
         """Trace each group (rays, region box) of a round in its region; the rays of each that left it.
 
         Rays are independent and a ray's numbers do not depend on its region, so the work is cut
@@ -100,7 +102,9 @@ class WoodSurface:
         tiles computed on the threads first); several groups (the rays that left the regions
         before) with all their regions' tiles computed at once, then their slices, largest
         groups first, on the threads, each region built by the first slice that needs it and let
-        go after its last."""
+        go after its last.  Slices of SLICE_RAYS or more rays, several a thread, so that threads
+        finish together; each thread keeps its memo and work buffers (``memos``, by thread) from
+        slice to slice (a memo changes no result, only what it costs)."""
         if len(groups) > 1:
             warm_regions(self.params, self.seed, self.thickness_um, [box for _, box in groups], self.threads)
         work = []  # per group: rays, box, result arrays, [context, slices left], lock
@@ -108,7 +112,7 @@ class WoodSurface:
         for todo, box in sorted(groups, key=lambda g: -g[0].size):
             k = todo.size
             res = [out[name][todo] for name in NAMES] + [skips[todo], stop[todo], log[todo] if log_events else log]
-            cuts = np.linspace(0, k, min(self.threads, max(1, k // 16)) + 1).astype(int)
+            cuts = np.linspace(0, k, min(SLICES * self.threads, max(1, k // SLICE_RAYS)) + 1).astype(int)
             work.append((todo, box, res, [None, len(cuts) - 1], threading.Lock()))
             jobs += [(len(work) - 1, lo, hi) for lo, hi in zip(cuts[:-1], cuts[1:])]
         if len(work) == 1:  # the lone region's tiles on the threads, before its slices
@@ -122,10 +126,13 @@ class WoodSurface:
                     held[0] = self._box(*box)
                 ctx = held[0]
             sel = todo[lo:hi]
+            memo = memos.get(threading.get_ident())
+            if memo is None:
+                memo = memos[threading.get_ident()] = (new_cache(), new_work())
             march(start[sel], heading[sel], ids[sel], self.thickness_um, *optics, ctx,
                   self.hit, self.tol, self.h_grad, self.step_scale, *(a[lo:hi] for a in res[:8]),
-                  res[10][lo:hi] if log_events else res[10], new_cache(), resume[sel],
-                  res[8][lo:hi], res[9][lo:hi], new_work())
+                  res[10][lo:hi] if log_events else res[10], memo[0], resume[sel],
+                  res[8][lo:hi], res[9][lo:hi], memo[1])
             with lock:
                 held[1] -= 1
                 if held[1] == 0:
@@ -173,9 +180,11 @@ class WoodSurface:
         ahead = np.full(n, base)  # how far a ray's next region reaches along its heading
         groups = [(np.arange(n), self._bounds(pos0, base))]
         rounds = 0
+        memos = {}  # per thread of this trace: its memo of this wood and its work buffers
         while groups:
             left = self._round(groups, start, heading, ids, out, skips, stop, log, resume, log_events,
-                               (float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed)))
+                               (float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed)),
+                               memos)
             todo = np.concatenate(left)
             # A ray that left goes on from its last segment's start, in a region around that
             # segment reaching twice as far ahead as the last one did.
