@@ -15,7 +15,7 @@ from ._lattice import chain_interval
 # --------------------------------------------------------------------------
 # Ray columns and groups
 # --------------------------------------------------------------------------
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
+@njit(inline="always", cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def ray_row(seed, M, k):
     """Node row (even T index) of ray column k."""
     x = k * M[RSPACE] + (2.0 * uniform(seed, _rng.RAY_COLUMN, k, 0, 0) - 1.0) * M[RJIT]
@@ -56,7 +56,7 @@ def group_span(seed, M, k, g):
     return L0, L0 + ncell * h
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
+@njit(inline="always", cache=True, nogil=True, error_model="numpy", _nrt=False)  # allocates nothing
 def ray_slot(seed, M, k, L):
     """The slot of column k's ray groups that holds L."""
     period = RAY_PERIOD * M[RHEIGHT]
