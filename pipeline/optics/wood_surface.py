@@ -31,7 +31,7 @@ NAMES = ("position", "direction", "status", "events", "path", "evaluations", "pa
 FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickness (the base margin)
 AHEAD_MAX = 8.0  # a ray that leaves a region goes on in one reaching 2, 4, then at most 8 base margins ahead
 MAX_ROUNDS = 10_000  # regions a beam may need before its rays count as lost (each goes 2-8 base margins further)
-_COUNTING = threading.Lock()
+_SHARED = threading.Lock()  # the region count and the free memos
 SLICES, SLICE_RAYS = 4, 16  # a group's rays in up to 4 slices a thread, of at least 16 rays
 
 
@@ -64,7 +64,7 @@ class WoodSurface:
         return self._box(*self._bounds(pos, margin))
 
     def _box(self, r: tuple, l: tuple, t: tuple | None = None) -> tuple:
-        with _COUNTING:  # regions of a round are built on several threads
+        with _SHARED:  # regions of a round are built on several threads
             self.regions += 1
         return context_tuple(region_context(self.params, self.seed, self.thickness_um, r, l, t, threads=self.threads))
 
@@ -103,8 +103,9 @@ class WoodSurface:
         before) with all their regions' tiles computed at once, then their slices, largest
         groups first, on the threads, each region built by the first slice that needs it and let
         go after its last.  Slices of SLICE_RAYS or more rays, several a thread, so that threads
-        finish together; each thread keeps its memo and work buffers (``memos``, by thread) from
-        slice to slice (a memo changes no result, only what it costs)."""
+        finish together; a slice takes a memo and work buffers from ``memos`` (those of slices
+        done before, on any thread) and gives them back (a memo changes no result, only what it
+        costs)."""
         if len(groups) > 1:
             warm_regions(self.params, self.seed, self.thickness_um, [box for _, box in groups], self.threads)
         work = []  # per group: rays, box, result arrays, [context, slices left], lock
@@ -126,13 +127,14 @@ class WoodSurface:
                     held[0] = self._box(*box)
                 ctx = held[0]
             sel = todo[lo:hi]
-            memo = memos.get(threading.get_ident())
-            if memo is None:
-                memo = memos[threading.get_ident()] = (new_cache(), new_work())
+            with _SHARED:
+                memo = memos.pop() if memos else (new_cache(), new_work())
             march(start[sel], heading[sel], ids[sel], self.thickness_um, *optics, ctx,
                   self.hit, self.tol, self.h_grad, self.step_scale, *(a[lo:hi] for a in res[:8]),
                   res[10][lo:hi] if log_events else res[10], memo[0], resume[sel],
                   res[8][lo:hi], res[9][lo:hi], memo[1])
+            with _SHARED:
+                memos.append(memo)  # for the next slice on any thread: no more memos than threads
             with lock:
                 held[1] -= 1
                 if held[1] == 0:
@@ -180,7 +182,7 @@ class WoodSurface:
         ahead = np.full(n, base)  # how far a ray's next region reaches along its heading
         groups = [(np.arange(n), self._bounds(pos0, base))]
         rounds = 0
-        memos = {}  # per thread of this trace: its memo of this wood and its work buffers
+        memos = []  # memos of this wood and work buffers free for the next slice (at most one a thread)
         while groups:
             left = self._round(groups, start, heading, ids, out, skips, stop, log, resume, log_events,
                                (float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed)),
