@@ -23,7 +23,8 @@ import numpy as np
 from numba import njit
 
 from .._intrinsics import borrowed, carve
-from ..microstructure.surface import MAX_PRIMS, N_COLS, P_BAND, P_PLY, P_REACH, P_VESSEL_OUT
+from ..microstructure.surface import MAX_PRIMS, N_COLS
+from ._march_rows import copy_rows, far_unproven, find_row, nearest, one_switched, regime, same_key, switched
 from ._surface_points import surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
 
@@ -31,43 +32,6 @@ NEEDS_REGION = NEEDS_CHUNK  # the ray left the precomputed region: the caller wi
 # Tolerances [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are.
 HIT = 1e-9  # a clearance below this: the ray stands on a surface
 TOL = 1e-9  # regula falsi narrows a crossing to this before the lattice bisection
-
-
-@njit(cache=True, nogil=True)
-def _switched(Pa, na, Pb, nb, key):
-    """The primitive whose sign differs between rows Pa and Pb (the smallest |g| at b), else the
-    row of smallest |g| at b; False if there is no row."""
-    best = 1e300
-    found = False
-    for j in range(nb):
-        if Pb[j, 0] == P_REACH:
-            continue
-        for i in range(na):
-            if (Pa[i, 0] == Pb[j, 0] and Pa[i, 1] == Pb[j, 1] and Pa[i, 2] == Pb[j, 2]
-                    and Pa[i, 3] == Pb[j, 3] and Pa[i, 4] == Pb[j, 4]):
-                if (Pa[i, 5] < 0.0) != (Pb[j, 5] < 0.0) and abs(Pb[j, 5]) < best:
-                    best = abs(Pb[j, 5])
-                    for q in range(5):
-                        key[q] = Pb[j, q]
-                    found = True
-                break
-    if not found:
-        # Within rounding of its root a primitive's g may keep the sign that the generator's own
-        # inequality has already left: the nearest surface is the one.
-        for j in range(nb):
-            if Pb[j, 0] != P_REACH and abs(Pb[j, 5]) < best:
-                best = abs(Pb[j, 5])
-                for q in range(5):
-                    key[q] = Pb[j, q]
-                found = True
-    return found
-
-
-@njit(inline="always", cache=True, nogil=True)
-def _regime(kind):
-    """Surfaces past which other primitives apply (a ray band, a vessel outline, a ply): the rows
-    listed on one side say nothing of the other, so these are never stepped over blindly."""
-    return kind == P_BAND or kind == P_VESSEL_OUT or kind == P_PLY
 
 
 PROBE = 1024.0  # lattice points (about 1e-9 µm) probed past a root where g and the phase part
@@ -93,52 +57,6 @@ def _face(X, d, thickness):
 
 
 @njit(cache=True, nogil=True)
-def _same(P, i, key):
-    return (P[i, 0] == key[0] and P[i, 1] == key[1] and P[i, 2] == key[2] and P[i, 3] == key[3]
-            and P[i, 4] == key[4])
-
-
-@njit(cache=True, nogil=True)
-def _nearest(P, n, skip, key):
-    """The row with the smallest clearance (not ``skip``, not a reach row), copied into ``key``;
-    returns (its index or -1, the smallest clearance of the other rows)."""
-    a = -1
-    for i in range(n):
-        if P[i, 0] == P_REACH or (skip[0] > 0.0 and _same(P, i, skip)):
-            continue
-        if a < 0 or P[i, 6] < P[a, 6]:
-            a = i
-    other = 1e300
-    for i in range(n):
-        if i == a or (skip[0] > 0.0 and _same(P, i, skip)):
-            continue
-        other = min(other, P[i, 6])
-    if a >= 0:
-        for q in range(5):
-            key[q] = P[a, q]
-    return a, other
-
-
-@njit(cache=True, nogil=True)
-def _find(P, n, key):
-    for i in range(n):
-        if _same(P, i, key):
-            return i
-    return -1
-
-
-@njit(cache=True, nogil=True)
-def _far_unproven(Pb, nb, i, skip, step):
-    """Whether a row at a step's end beyond a regime surface (row i), other than it and the
-    primitive crossed last, may switch within the step: its clearance ball at the end does not
-    reach back to the step's start (the rows of the far side say nothing of the near side)."""
-    for j in range(nb):
-        if j != i and not (skip[0] > 0.0 and _same(Pb, j, skip)) and Pb[j, 6] < step:
-            return True
-    return False
-
-
-@njit(cache=True, nogil=True)
 def _before_root(X, d, s, s_end, g_lo, g_hi, key, lq, ctx, Pw, Pb, cache, every, tol):
     """Regula falsi (Illinois) on primitive ``key``'s g, whose sign differs at s and s_end: the
     last point found on s's side within ``tol`` of its root.  Returns (found, that point, its
@@ -158,7 +76,7 @@ def _before_root(X, d, s, s_end, g_lo, g_hi, key, lq, ctx, Pw, Pb, cache, every,
             break
         ph, nm = surface_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, Pw, cache, every)
         k += 1
-        i = _find(Pw, nm, key) if ph != 255 else -1
+        i = find_row(Pw, nm, key) if ph != 255 else -1
         if i < 0:
             return False, s, ph_lo, 0, k
         gm = Pw[i, 5]
@@ -167,7 +85,7 @@ def _before_root(X, d, s, s_end, g_lo, g_hi, key, lq, ctx, Pw, Pb, cache, every,
             g_lo = gm
             ph_lo = ph
             n_lo = nm
-            _copy_rows(Pb, Pw, nm)
+            copy_rows(Pb, Pw, nm)
             if side == -1:
                 g_hi *= 0.5
             side = -1
@@ -178,13 +96,6 @@ def _before_root(X, d, s, s_end, g_lo, g_hi, key, lq, ctx, Pw, Pb, cache, every,
                 g_lo *= 0.5
             side = 1
     return lo > s, lo, ph_lo, n_lo, k
-
-
-@njit(inline="always", cache=True, nogil=True)
-def _copy_rows(dst, src, n):
-    for i in range(n):
-        for q in range(N_COLS):
-            dst[i, q] = src[i, q]
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -223,12 +134,12 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, ca
             if php == med:  # the new lower end
                 klo = khi
                 na = nb
-                _copy_rows(Pa, Pb, nb)
+                copy_rows(Pa, Pb, nb)
             else:
                 ph_hi = php
             khi = kp
             nb = npp
-            _copy_rows(Pb, P, npp)
+            copy_rows(Pb, P, npp)
             jump *= 2.0
         if ph_hi == med:
             return klo, khi, na, nb, ne, True
@@ -243,11 +154,11 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, ca
         if phm == med:
             klo = kmid
             na = nm
-            _copy_rows(Pa, P, nm)
+            copy_rows(Pa, P, nm)
         else:
             khi = kmid
             nb = nm
-            _copy_rows(Pb, P, nm)
+            copy_rows(Pb, P, nm)
     return klo, khi, na, nb, ne, False
 
 
@@ -349,13 +260,13 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     st = NEEDS_REGION
                     break
             have = False
-            a, other = _nearest(P, n, skip, key)
+            a, other = nearest(P, n, skip, key)
             # The primitive crossed last is free to switch once more only from inside its
             # negative set (a line that left a convex set does not come back to it).
             skip_free = force_free
             force_free = False
             if skip[0] > 0.0 and not skip_free:
-                i = _find(P, n, skip)
+                i = find_row(P, n, skip)
                 skip_free = i >= 0 and P[i, 5] < 0.0
             g_a = 0.0
             relax = False
@@ -364,13 +275,13 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 prev_ok = False
             else:
                 g_a = P[a, 5]
-                if skip_free or g_a > 0.0 or _regime(P[a, 0]):
+                if skip_free or g_a > 0.0 or regime(P[a, 0]):
                     # Approached from outside, A keeps its proven clearance; so it does while the
                     # primitive crossed last is free (one free primitive per step).  A regime
                     # surface is passed only where the rows of its far side prove the part of the
                     # step beyond it free (checked at the step's end).
                     step = min(P[a, 6], other)
-                    if relax_ok and g_a < 0.0 and _regime(P[a, 0]) and P[a, 6] < other:
+                    if relax_ok and g_a < 0.0 and regime(P[a, 0]) and P[a, 6] < other:
                         # Inside a regime surface's negative set (convex in the pulled-back
                         # coordinates, like a lumen): as far as the others allow.
                         step = other
@@ -382,8 +293,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # falling since the last step): past the secant's root of g.  Leaving it (g
                     # rising): as far as the balls would cover were g to keep rising at most 0.8
                     # times as fast.  A regime surface's steps are checked at the end as below.
-                    if (relax_ok and (not skip_free or _regime(P[a, 0])) and g_a > 0.0 and P[a, 6] < other
-                            and prev_ok and _same(P, a, prev_key) and prev_g != g_a):
+                    if (relax_ok and (not skip_free or regime(P[a, 0])) and g_a > 0.0 and P[a, 6] < other
+                            and prev_ok and same_key(P, a, prev_key) and prev_g != g_a):
                         c_a = P[a, 6]
                         if prev_g > g_a:
                             root = OVERSHOOT * g_a * (s - prev_s) / (prev_g - g_a)
@@ -421,13 +332,13 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 st = NEEDS_REGION
                 s_stop = s_end
                 break
-            if relax and not near and _regime(P[a, 0]):
+            if relax and not near and regime(P[a, 0]):
                 # A long step from a regime surface A: kept where it is proven, else cut short of
                 # A's root (then only the near side's rows apply), else taken again on A's own
                 # clearance.
-                i = _find(Pb, nb, key)
+                i = find_row(Pb, nb, key)
                 if i >= 0 and (Pb[i, 5] < 0.0) != (g_a < 0.0):
-                    if skip_free or _far_unproven(Pb, nb, i, skip, s_end - s):
+                    if skip_free or far_unproven(Pb, nb, i, skip, s_end - s):
                         ok, lo, phb, nb, k = _before_root(X, d, s, s_end, g_a, Pb[i, 5], key, lq, ctx, Pa, Pb, cache,
                                                            every, tol)
                         ne += k
@@ -445,7 +356,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     relax_ok = False
                     continue
             elif phb == med and relax and not near:
-                i = _find(Pb, nb, key)
+                i = find_row(Pb, nb, key)
                 if i < 0 or Pb[i, 5] <= 0.0 or P[a, 6] + Pb[i, 6] < s_end - s:
                     # A may hold a chord between the ends, or was entered with no phase change
                     # (inside it other primitives apply): from s again, on A's own clearance.
@@ -464,7 +375,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     break
                 s = s_end
                 n = nb
-                _copy_rows(P, Pb, nb)
+                copy_rows(P, Pb, nb)
                 have = True
                 continue
             if ev >= max_events:
@@ -482,8 +393,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     kk = key if cand == 0 else skip
                     if kk[0] <= 0.0 or (cand == 0 and a < 0):
                         continue
-                    i0 = _find(P, n, kk)
-                    i1 = _find(Pb, nb, kk)
+                    i0 = find_row(P, n, kk)
+                    i1 = find_row(Pb, nb, kk)
                     if i0 >= 0 and i1 >= 0 and (P[i0, 5] < 0.0) != (Pb[i1, 5] < 0.0):
                         if single:
                             single = False  # both switched: bisect the phase
@@ -494,10 +405,19 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                         if cand == 1:
                             for q in range(5):
                                 key[q] = skip[q]
+            # Otherwise, if one primitive listed at both ends switched, its root guides the search
+            # for the lattice crossing (the crossing is the same; only bisection from the step's
+            # ends is spared).
+            guided = False
+            if not single:
+                j = one_switched(P, n, Pb, nb, key)
+                if j >= 0:
+                    guided = True
+                    g_lo = P[find_row(P, n, key), 5]
             g_hi = Pb[j, 5] if j >= 0 else np.nan
             t_lo = g_lo  # the true g at lo and hi (Illinois halves its copies)
             t_hi = g_hi
-            if single:
+            if single or guided:
                 # Regula falsi (Illinois) on the sign of g: the root of the primitive itself.
                 side = 0
                 while hi - lo > tol:
@@ -509,9 +429,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     phm, nm = surface_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache,
                                           key)
                     ne += 1
-                    i = _find(P, nm, key)
+                    i = find_row(P, nm, key)
                     if i < 0:
                         single = False
+                        guided = False
                         lo = s
                         hi = s_end
                         break
@@ -534,7 +455,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             # in the new phase, whatever bracket led there.  First a guess: the lattice points
             # either side of the secant's root of g in the bracket.
             guessed = False
-            if single and t_lo != t_hi:
+            if (single or guided) and t_lo != t_hi:
                 root = min(max(lo + (hi - lo) * t_lo / (t_lo - t_hi), lo), hi)
                 klo = math.floor(root / LATTICE)
                 khi = klo + 1.0
@@ -545,6 +466,9 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     ne += 1
                     guessed = ph_hi != med
             if not guessed:
+                if guided:
+                    lo = s
+                    hi = s_end
                 klo, khi, na, nb, ne, passed = _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa,
                                                                 Pb, cache, every, ne)
                 if passed:
@@ -553,14 +477,14 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # whatever the rounding of its g says; what changes the phase lies further on.
                     npass += 1
                     for q in range(5):
-                        skip[q] = 0.0 if _regime(key[0]) else key[q]
-                    force_free = not _regime(key[0])
+                        skip[q] = 0.0 if regime(key[0]) else key[q]
+                    force_free = not regime(key[0])
                     s = khi * LATTICE
                     continue
             lo = klo * LATTICE
             hi = khi * LATTICE
             # The normal: the gradient of the switching primitive at the crossing.
-            ok = _switched(Pa, na, Pb, nb, key)
+            ok = switched(Pa, na, Pb, nb, key)
             for q in range(3):
                 base[q] = X[q] + hi * d[q]
             found, k = surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e)
@@ -593,10 +517,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             # (X + 0·d is that point bit for bit, so they are the rows an evaluation would give).
             if new != med:
                 n = nb
-                _copy_rows(P, Pb, nb)
+                copy_rows(P, Pb, nb)
             else:
                 n = na
-                _copy_rows(P, Pa, na)
+                copy_rows(P, Pa, na)
             have = True
             med = new
             prev_ok = False  # a new segment
@@ -605,10 +529,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             t_face = _face(X, d, thickness)
             for q in range(5):
                 skip[q] = key[q]
-            if _regime(key[0]):
+            if regime(key[0]):
                 # A regime surface is left out only from its positive side (outside its convex
                 # negative set, which a line moving away never re-enters).
-                j = _find(Pb, nb, key) if t_go == hi else _find(Pa, na, key)
+                j = find_row(Pb, nb, key) if t_go == hi else find_row(Pa, na, key)
                 if j < 0 or (Pb[j, 5] if t_go == hi else Pa[j, 5]) <= 0.0:
                     skip[0] = 0.0
             seg_ne = ne - 1  # the rows at hand count as the segment's first evaluation (resumed, it makes it)
