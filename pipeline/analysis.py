@@ -14,15 +14,16 @@ HAZE_ANGLE_DEG = 2.5
 def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
     """Maximum-likelihood (θ0, γ) of f(θ) = γ / (π((θ − θ0)² + γ²)) [degree].
 
-    A sample with no spread (every angle equal, as when ΔRI = 0) has γ = 0
-    exactly.
+    A sample with more than half its angles equal (no spread at all, as when ΔRI = 0; or a thin
+    sample most of whose rays no wall deflects) has γ = 0 exactly, at that angle: the likelihood
+    grows without bound as γ → 0 there.
     """
     x = np.asarray(theta_deg, dtype=np.float64)
     if x.size == 0:
         return float("nan"), float("nan")
-    if np.all(x == x[0]):
-        return float(x[0]), 0.0
     med = float(np.median(x))
+    if 2 * np.count_nonzero(x == med) > x.size:  # a value held by more than half is the median
+        return med, 0.0
     iqr = float(np.subtract(*np.percentile(x, [75, 25])))
     scale0 = max(iqr / 2.0, 1e-9)
     newton = _cauchy_newton(x, med, math.log(scale0))
@@ -34,8 +35,6 @@ def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
         g = np.exp(log_g)
         return -np.sum(np.log(g / np.pi) - np.log((x - loc) ** 2 + g * g))
 
-    # More than half the angles equal (an index-matched or empty sample) drives γ to 0,
-    # where the likelihood is infinite: the fit ends there with γ ~ 0, as it should.
     with np.errstate(divide="ignore", invalid="ignore"):
         res = optimize.minimize(nll, [med, np.log(scale0)], method="Nelder-Mead",
                                 options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 4000})

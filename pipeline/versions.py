@@ -12,8 +12,9 @@ from __future__ import annotations
 #   micro 3: wood without ray cells keeps the vessels and fibre distortion of the same wood with
 #            them (ray columns are a property of the lattice); wood with ray cells holds the same voxels.
 #   rays 4: positions and path lengths stored in µm (the tracer interface's units), not voxels.
-#   summary 3: haze CI.  pool 1: wood realisations pooled.
-STAGES = {"micro": "3", "rays": "4", "summary": "3", "pool": "1"}
+#   summary 4: γ = 0 exactly where more than half the angles are equal (it was ~1e-187).
+#   pool 1: wood realisations pooled.
+STAGES = {"micro": "3", "rays": "4", "summary": "4", "pool": "1"}
 
 # The generator's version: the voxels of every wood (pinned by tests/test_microstructure.py).
 GENERATOR = STAGES["micro"]
