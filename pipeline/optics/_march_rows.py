@@ -56,36 +56,24 @@ def nearest(P, n, skip, key):
 
 
 @njit(cache=True, nogil=True)
-def sign_changes(Pa, na, Pb, nb):
-    """(How many primitives listed in both tables have signs that differ, the row in Pb of the one
-    with the smallest |g| there or -1)."""
+def switched(Pa, na, Pb, nb, key):
+    """The primitive whose sign differs between rows Pa and Pb (the smallest |g| at b), else the
+    row of smallest |g| at b, copied into ``key``; False if there is no row."""
     best = 1e300
     j = -1
-    count = 0
     for jb in range(nb):
         if Pb[jb, 0] == P_REACH:
             continue
         for i in range(na):
             if (Pa[i, 0] == Pb[jb, 0] and Pa[i, 1] == Pb[jb, 1] and Pa[i, 2] == Pb[jb, 2]
                     and Pa[i, 3] == Pb[jb, 3] and Pa[i, 4] == Pb[jb, 4]):
-                if (Pa[i, 5] < 0.0) != (Pb[jb, 5] < 0.0):
-                    count += 1
-                    if abs(Pb[jb, 5]) < best:
-                        best = abs(Pb[jb, 5])
-                        j = jb
+                if (Pa[i, 5] < 0.0) != (Pb[jb, 5] < 0.0) and abs(Pb[jb, 5]) < best:
+                    best = abs(Pb[jb, 5])
+                    j = jb
                 break
-    return count, j
-
-
-@njit(cache=True, nogil=True)
-def switched(Pa, na, Pb, nb, key):
-    """The primitive whose sign differs between rows Pa and Pb (the smallest |g| at b), else the
-    row of smallest |g| at b, copied into ``key``; False if there is no row."""
-    _, j = sign_changes(Pa, na, Pb, nb)
     if j < 0:
         # Within rounding of its root a primitive's g may keep the sign that the generator's own
         # inequality has already left: the nearest surface is the one.
-        best = 1e300
         for jb in range(nb):
             if Pb[jb, 0] != P_REACH and abs(Pb[jb, 5]) < best:
                 best = abs(Pb[jb, 5])
@@ -95,18 +83,6 @@ def switched(Pa, na, Pb, nb, key):
     for q in range(5):
         key[q] = Pb[j, q]
     return True
-
-
-@njit(cache=True, nogil=True)
-def one_switched(Pa, na, Pb, nb, key):
-    """The row in Pb of the one primitive listed in both tables whose sign differs (copied into
-    ``key``), else -1 (none, or several)."""
-    count, j = sign_changes(Pa, na, Pb, nb)
-    if count != 1:
-        return -1
-    for q in range(5):
-        key[q] = Pb[j, q]
-    return j
 
 
 @njit(cache=True, nogil=True)

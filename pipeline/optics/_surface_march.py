@@ -24,7 +24,7 @@ from numba import njit
 
 from .._intrinsics import borrowed, carve
 from ..microstructure.surface import MAX_PRIMS, N_COLS
-from ._march_rows import copy_rows, far_unproven, find_row, nearest, one_switched, regime, same_key, switched
+from ._march_rows import copy_rows, far_unproven, find_row, nearest, regime, same_key, switched
 from ._surface_points import surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
 
@@ -405,19 +405,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                         if cand == 1:
                             for q in range(5):
                                 key[q] = skip[q]
-            # Otherwise, if one primitive listed at both ends switched, its root guides the search
-            # for the lattice crossing (the crossing is the same; only bisection from the step's
-            # ends is spared).
-            guided = False
-            if not single:
-                j = one_switched(P, n, Pb, nb, key)
-                if j >= 0:
-                    guided = True
-                    g_lo = P[find_row(P, n, key), 5]
             g_hi = Pb[j, 5] if j >= 0 else np.nan
             t_lo = g_lo  # the true g at lo and hi (Illinois halves its copies)
             t_hi = g_hi
-            if single or guided:
+            if single:
                 # Regula falsi (Illinois) on the sign of g: the root of the primitive itself.
                 side = 0
                 while hi - lo > tol:
@@ -432,7 +423,6 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     i = find_row(P, nm, key)
                     if i < 0:
                         single = False
-                        guided = False
                         lo = s
                         hi = s_end
                         break
@@ -455,7 +445,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             # in the new phase, whatever bracket led there.  First a guess: the lattice points
             # either side of the secant's root of g in the bracket.
             guessed = False
-            if (single or guided) and t_lo != t_hi:
+            if single and t_lo != t_hi:
                 root = min(max(lo + (hi - lo) * t_lo / (t_lo - t_hi), lo), hi)
                 klo = math.floor(root / LATTICE)
                 khi = klo + 1.0
@@ -466,9 +456,6 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     ne += 1
                     guessed = ph_hi != med
             if not guessed:
-                if guided:
-                    lo = s
-                    hi = s_end
                 klo, khi, na, nb, ne, passed = _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa,
                                                                 Pb, cache, every, ne)
                 if passed:
