@@ -32,11 +32,12 @@ RECORD_ENV = "TWRAY_ESTIMATES"  # a file each checked estimate is appended to, a
 CONFIRM_DEFAULT_H = 2.0
 # Measured by benchmarks/bench_estimates.py (results/estimates.md) on 2-core machines; tests/test_limits.py
 # holds a few cases within 1.5x of what the commands use.
-STARTUP_CPU_S = 2.5  # a process importing twray and loading its compiled kernels (the command, each worker)
-IMPORT_CPU_S = 2.0  # a command that reads or writes volumes only (export-tiff, a lazy generate)
+STARTUP_CPU_S = 1.6  # a process importing twray and loading its compiled kernels (the command, each worker)
+IMPORT_CPU_S = 1.0  # a command that reads or writes volumes only (export-tiff, a lazy generate)
 BASE_MEMORY = 300e6  # a process with twray's libraries and kernels loaded (220-320 MB measured)
-# Voxels generated per CPU-second: fibre ellipses (birch 43-64 M/s), rotated plies (34 M/s), balsa's polygons (14 M/s).
-GENERATE_VOXELS_PER_CPU_S = {"ellipse": 45e6, "plies": 30e6, "polygon": 12e6}
+# Voxels generated per CPU-second into a store, its compression and pyramid included: fibre ellipses (birch
+# 71-88 M/s), rotated plies (46 M/s), balsa's polygons (17 M/s).
+GENERATE_VOXELS_PER_CPU_S = {"ellipse": 80e6, "plies": 45e6, "polygon": 17e6}
 # zstd chunks and their pyramid at 0.5 µm voxels (birch 0.011-0.013 B, balsa 0.014 B a voxel); finer voxels
 # compress better, about as sqrt(voxel); rotated plies 2.3x worse.
 DISK_BYTES_PER_VOXEL = 0.012
@@ -49,12 +50,12 @@ CAMERA_MEMORY, CAMERA_BYTES_PER_WOOD_VOXEL = 330e6, 0.27
 RAY_BYTES = 512  # a ray's state, result and beam entry in one trace
 DATASET_RAY_BYTES = 24  # theta_r, theta_l, interfaces and status of a ray in a result Dataset
 INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
-                   # exact: no wood generated; ~20 µs an interface (Table 1 at paper scale: 404 CPU-s for
-                   # 28 CPU-min at 85 µs; 1000 rays x 1.5 mm: 29 CPU-µs on 2 threads, regions included;
-                   # fewer rays find fewer control values memoised), plus its regions
-                   "exact": 2.5e-5}
+                   # exact: no wood generated; 16 CPU-µs an estimated interface (1000 rays x 1.5 mm on 2
+                   # threads: 2.9 CPU-s of march for 207,000 estimated, 184,000 met; then its summary),
+                   # plus its regions
+                   "exact": 1.6e-5}
 REGION_MEMORY_FACTOR = 4.0  # exact: a worker's growth with its regions (their tiles, caches and arenas)
-REGION_CPU_S_PER_BYTE = 5e-8  # exact: building a trace's regions (distortion tiles: 1.3 s for 1 mm of birch)
+REGION_CPU_S_PER_BYTE = 1.7e-8  # exact: building a trace's regions (1.5 mm of birch: 0.8 CPU-s, nearly all tiles)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
 # What a study writes besides its wood (measured by tests/test_limits.py): per shard of rays an .npz
 # (headers and its record, then 120 B a ray), per wood and value a summary and per value a pool
@@ -62,8 +63,9 @@ INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1
 # DATASET_RAY_BYTES; Table 1's compress to 17 B a ray).
 SHARD_BYTES, SHARD_RAY_BYTES, ENTRY_BYTES, DATASET_BYTES = 7e3, 120.0, 800.0, 75e3
 # ... and what its reductions cost: per scene (value and wood) its summary, its share of the value's
-# pool and the tasks' overhead; per study its Dataset (xarray, Zarr).
-SCENE_CPU_S, DATASET_CPU_S = 0.6, 2.0
+# pool and the tasks' overhead; per study its Dataset (xarray, Zarr).  Fitted with the startups to a
+# small `exact` study (4 scenes, 5.9 CPU-s in all) and Table 1's study 2 at --scale quick (30, 20.8).
+SCENE_CPU_S, DATASET_CPU_S = 0.3, 0.5
 SPREAD = 1.25  # chunks generated around the beam's column by spreading rays, as a factor
 CHUNK = 64  # voxels along a chunk edge in the study cache
 SHOW_ESTIMATE_S = 60.0  # commands estimated above this many CPU-seconds print their estimate first
@@ -217,6 +219,7 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
     written with their summaries, pools and one Dataset."""
     est = Estimate()
     woods = {}
+    regions = {}  # exact: per wood, the largest region a scene of it builds
     for s in scenes:
         if s.target is not None and s.target.over == "rays":  # traced to a precision: at most its cap of rays
             s = dataclasses.replace(s, rays=s.target.max_rays)
@@ -229,14 +232,19 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
                                wood=False, store=True, generated=s.wood is not None, params=s.wood)
         n_shards = math.ceil(s.rays / shard_rays)
         # A surface scene's region is built by each shard, but its distortion tiles (nearly all of
-        # its cost) are cached in the worker: counted once a scene.
+        # its cost) are cached in the worker and shared by every scene of the same wood (Table 1's
+        # values of ΔRI, say): counted once a wood.
         again = 0.0
         if s.wood is not None and METHODS.get(s.settings.method) == "surfaces":
-            again = (n_shards - 1) * surface_region_bytes(s.beam_um, s.thickness_um, s.pitch_um) * REGION_CPU_S_PER_BYTE
+            region = surface_region_bytes(s.beam_um, s.thickness_um, s.pitch_um) * REGION_CPU_S_PER_BYTE
+            again = n_shards * region
+            key = (repr(s.wood), s.seed)
+            regions[key] = max(regions.get(key, 0.0), region)
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))
         written = n_shards * SHARD_BYTES + s.rays * (SHARD_RAY_BYTES + DATASET_RAY_BYTES) + 2 * ENTRY_BYTES
         est = est + Estimate(shard.cpu_s * n_shards - again + SCENE_CPU_S, max(shard.memory, reduce), written)
+    est = est + Estimate(sum(regions.values()), 0.0, 0.0)
     return est + _woods(woods) + (Estimate(DATASET_CPU_S, 0.0, DATASET_BYTES) if scenes else Estimate())
 
 

@@ -215,8 +215,9 @@ def test_a_study_generates_each_wood_once_and_traces_every_scene_by_shards():
         (wood_voxels(40.0, 100.0, 0.25) * 0.5 ** 0.5 - voxels) * limits.DISK_BYTES_PER_VOXEL)
 
 
-def test_an_exact_scenes_region_is_costed_once_however_its_rays_are_sharded():
-    # Its shards share the worker's distortion tiles, nearly all of a region's cost.
+def test_an_exact_woods_region_is_costed_once_however_its_rays_are_sharded_and_its_scenes_vary():
+    # Its shards, and the scenes of the same wood (other values of ΔRI), share the worker's
+    # distortion tiles, nearly all of a region's cost; another seed is another wood.
     scene = _scene(settings=settings_for("exact"), thickness_um=1000.0)
     one_shard = study_estimate([scene], shard_rays=1000)
     four = study_estimate([scene], shard_rays=250)
@@ -225,6 +226,10 @@ def test_an_exact_scenes_region_is_costed_once_however_its_rays_are_sharded():
     bare = trace_estimate(rays=1000, beam_um=40.0, thickness_um=1000.0, voxel_um=0.5, pitch_um=14.5,
                           method="exact", wood=False, store=True, generated=False)
     assert one_shard.cpu_s == pytest.approx(bare.cpu_s + region + limits.SCENE_CPU_S + limits.DATASET_CPU_S)
+    two_values = study_estimate([scene, dataclasses.replace(scene, value=0.02, delta_ri=0.02)], shard_rays=1000)
+    assert two_values.cpu_s == pytest.approx(2 * (bare.cpu_s + limits.SCENE_CPU_S) + region + limits.DATASET_CPU_S)
+    two_woods = study_estimate([scene, dataclasses.replace(scene, seed=2)], shard_rays=1000)
+    assert two_woods.cpu_s == pytest.approx(two_values.cpu_s + region)
 
 
 def test_a_study_traced_to_a_precision_is_costed_at_its_cap_of_rays():
