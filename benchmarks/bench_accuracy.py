@@ -79,7 +79,7 @@ def _noise(args) -> dict:
     b = lat.trace(beam.origins * VOXEL, beam.direction, n_wall=n_wall, n_poly=n_poly, thickness_um=250.0,
                   normal_noise_deg=deg)
     return {"family": family, "delta_ri": dri, "normal_noise_deg": deg,
-            "fwhm_r_error": fwhm(b.theta_r[b.transmitted]) / fwhm(a.theta_r[a.transmitted]) - 1.0,
+            "fwhm_r_error": fwhm(b.theta_r[b.transmitted], "lorentz-mle") / fwhm(a.theta_r[a.transmitted], "lorentz-mle") - 1.0,
             "haze_error_points": 100.0 * (haze(b.direction[b.transmitted]) - haze(a.direction[a.transmitted]))}
 
 

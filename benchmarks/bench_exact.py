@@ -178,7 +178,7 @@ def lattices(_: str) -> dict:
 
 
 def _fwhm(res):
-    from pipeline.analysis import summarize
+    from pipeline.summary import summarize
     return summarize(res, n_boot=2)["fwhm_r_deg"]
 
 

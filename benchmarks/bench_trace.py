@@ -32,7 +32,7 @@ from _bench_json import write_section
 from numba import njit
 from scipy import stats
 
-from pipeline.analysis import summarize
+from pipeline.summary import summarize
 from pipeline.microstructure.model import generate_block
 from pipeline.optics import _normals
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource

@@ -84,20 +84,228 @@ def _cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 1
     return None
 
 
-def fwhm(theta_deg: np.ndarray) -> float:
-    """FWHM = 2γ of the fitted Lorentz distribution [degree]."""
-    return 2.0 * cauchy_fit(theta_deg)[1]
+# ------------------------------------------------------------------ widths
+# Three estimators of a width (docs/methods.md#fwhm-and-haze); the default is the source's own definition.
+HALF_MAX, LORENTZ_HIST, LORENTZ_MLE = "half-max", "lorentz-hist", "lorentz-mle"
+ESTIMATORS = (HALF_MAX, LORENTZ_HIST, LORENTZ_MLE)
+DEFAULT_ESTIMATOR = HALF_MAX
+# half-max: a Gaussian kernel density estimate of bandwidth h = KDE_C · IQR · n^(-1/5), binned at h/4.
+KDE_C = 0.3
+KDE_BINS_PER_H = 4
+# lorentz-hist: bins of Freedman–Diaconis width 2 · IQR · n^(-1/3) unless fixed, over the median ± HIST_RANGE_IQR · IQR.
+HIST_RANGE_IQR = 5.0
+HIST_MIN_BINS = 10
+FWHM_GAUSS = 2.0 * math.sqrt(2.0 * math.log(2.0))  # a Gaussian's FWHM in standard deviations
 
 
-def fwhm_ci(theta_deg: np.ndarray, *, n_boot: int = 200, seed: int = 0, level: float = 0.95):
-    """Bootstrap percentile interval of the FWHM [degree]."""
+@dataclass(frozen=True)
+class FwhmSpec:
+    """Which width FWHM_R and FWHM_L are (``estimator``), and the histogram of ``lorentz-hist``:
+    ``bin_deg`` (None: the Freedman–Diaconis width) and ``range_iqr`` (the half-range around the
+    median in interquartile ranges; inf: every angle)."""
+
+    estimator: str = DEFAULT_ESTIMATOR
+    bin_deg: float | None = None
+    range_iqr: float = HIST_RANGE_IQR
+
+    def __post_init__(self):
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"`fwhm.estimator` must be one of {', '.join(ESTIMATORS)}, got {self.estimator!r}")
+        if self.bin_deg is not None and not (isinstance(self.bin_deg, (int, float)) and 0 < self.bin_deg <= 10):
+            raise ValueError(f"`fwhm.bin_deg` must be a number in (0, 10] degrees, got {self.bin_deg!r}")
+        if not (isinstance(self.range_iqr, (int, float)) and self.range_iqr >= 1):
+            raise ValueError(f"`fwhm.range_iqr` must be a number >= 1 (or .inf), got {self.range_iqr!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "FwhmSpec":
+        d = dict(d or {})
+        unknown = set(d) - {"estimator", "bin_deg", "range_iqr"}
+        if unknown:
+            raise ValueError(f"unknown key `fwhm.{sorted(unknown)[0]}` (known: estimator, bin_deg, range_iqr)")
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        return {"estimator": self.estimator, "bin_deg": self.bin_deg,
+                "range_iqr": self.range_iqr if math.isfinite(self.range_iqr) else "inf"}
+
+
+@dataclass(frozen=True)
+class Bins:
+    """A grid of ``m`` bins of width ``step`` whose first centre is ``lo`` [degree]."""
+
+    lo: float
+    step: float
+    m: int
+
+    def index(self, x: np.ndarray) -> np.ndarray:
+        """Each angle's bin, -1 outside the grid."""
+        i = np.floor((np.asarray(x, dtype=np.float64) - self.lo) / self.step + 0.5).astype(np.int64)
+        i[(i < 0) | (i >= self.m)] = -1
+        return i
+
+    def counts(self, x: np.ndarray) -> np.ndarray:
+        i = self.index(x)
+        return np.bincount(i[i >= 0], minlength=self.m).astype(np.float64)
+
+    @property
+    def centres(self) -> np.ndarray:
+        return self.lo + self.step * np.arange(self.m)
+
+
+def _quartiles(x: np.ndarray) -> tuple[float, float]:
+    q1, med, q3 = np.percentile(x, [25, 50, 75])
+    return float(med), float(q3 - q1)
+
+
+def kde_plan(x: np.ndarray) -> tuple[Bins, float] | None:
+    """The binned grid and bandwidth h [degree] of ``half-max`` for the sample ``x``; None where more
+    than a quarter of the angles lie on each side of one value (IQR 0: a spike, of width 0)."""
+    med, iqr = _quartiles(x)
+    if iqr == 0.0:
+        return None
+    h = KDE_C * iqr * x.size ** -0.2
+    step = h / KDE_BINS_PER_H
+    half = 4.0 * iqr + 5.0 * h  # the peak and its half-maximum points for any unimodal shape seen (FWHM <= 4 IQR)
+    m = int(math.ceil(2.0 * half / step)) + 1
+    return Bins(med - half, step, m), h
+
+
+def half_max_of_counts(counts: np.ndarray, bins: Bins, h: float) -> np.ndarray:
+    """Width at half maximum [degree] of the Gaussian kernel density estimate of each row of
+    binned ``counts`` (B, m) with bandwidth ``h``: the outermost points where the estimate is half
+    its maximum, linearly interpolated between bins; NaN where the estimate does not fall below
+    half its maximum inside the grid."""
+    from scipy.ndimage import gaussian_filter1d
+
+    d = np.atleast_2d(gaussian_filter1d(np.asarray(counts, dtype=np.float64), h / bins.step, axis=-1,
+                                        mode="constant", truncate=4.0))
+    rows = np.arange(d.shape[0])
+    half = d.max(axis=1) / 2.0
+    above = d >= half[:, None]
+    right = d.shape[1] - 1 - np.argmax(above[:, ::-1], axis=1)  # the last bin at or above half
+    left = np.argmax(above, axis=1)
+    ok = (right < d.shape[1] - 1) & (left > 0)
+    right, left = np.minimum(right, d.shape[1] - 2), np.maximum(left, 1)
+
+    def cross(ja, jb):  # d[ja] >= half > d[jb], adjacent bins
+        da, db = d[rows, ja], d[rows, jb]
+        return bins.lo + bins.step * (ja + (da - half) / (da - db) * (jb - ja))
+
+    width = cross(right, right + 1) - cross(left, left - 1)
+    return np.where(ok, width, np.nan)
+
+
+def half_max_fwhm(theta_deg: np.ndarray) -> float:
+    """The width of the angle distribution between the points at half its maximum [degree]
+    (``half-max``): the outermost half-maximum points of a Gaussian kernel density estimate with
+    bandwidth h = 0.3 · IQR · n^(-1/5), binned at h/4.  0 where the IQR is 0."""
     x = np.asarray(theta_deg, dtype=np.float64)
     if x.size < 2:
-        return float("nan"), float("nan")
-    rng = np.random.default_rng(seed)
-    boots = [fwhm(x[rng.integers(0, x.size, x.size)]) for _ in range(n_boot)]
-    a = (1.0 - level) / 2.0
-    return float(np.quantile(boots, a)), float(np.quantile(boots, 1.0 - a))
+        return float("nan")
+    plan = kde_plan(x)
+    if plan is None:
+        return 0.0
+    bins, h = plan
+    return float(half_max_of_counts(bins.counts(x), bins, h)[0])
+
+
+def hist_bins(x: np.ndarray, spec: FwhmSpec) -> Bins | None:
+    """The histogram of ``lorentz-hist`` for the sample ``x`` (None where the IQR is 0)."""
+    med, iqr = _quartiles(x)
+    if iqr == 0.0:
+        return None
+    step = float(spec.bin_deg) if spec.bin_deg is not None else 2.0 * iqr * x.size ** (-1.0 / 3.0)
+    if math.isfinite(spec.range_iqr):  # at least ten bins each side, however narrow the angles
+        half = max(spec.range_iqr * iqr, HIST_MIN_BINS * step)
+        lo, hi = med - half, med + half
+    else:
+        lo, hi = float(x.min()), float(x.max())
+    m = max(int(math.ceil((hi - lo) / step)), 3)
+    return Bins(lo + step / 2.0, step, m)
+
+
+def lorentz_hist_of_counts(counts: np.ndarray, bins: Bins, *, iterations: int = 60) -> np.ndarray:
+    """FWHM = 2γ [degree] of the least-squares fit of A / (1 + ((θ − θ0)/γ)²) to each row of
+    histogram ``counts`` (B, m) at the bin centres (Levenberg–Marquardt, from the tallest bin and
+    the half-maximum width of the bars); NaN where it does not converge."""
+    y = np.atleast_2d(np.asarray(counts, dtype=np.float64))
+    c = bins.centres
+    b = y.shape[0]
+    rows = np.arange(b)
+    k = y.argmax(axis=1)
+    amp = y[rows, k]
+    p = np.stack([amp, c[k], np.maximum(np.sum(y >= amp[:, None] / 2, axis=1) * bins.step / 2, bins.step / 2)], axis=1)
+
+    def residual(p):
+        u = (c[None] - p[:, 1:2]) / p[:, 2:3]
+        return p[:, 0:1] / (1.0 + u * u) - y, u
+
+    r, u = residual(p)
+    cost = np.sum(r * r, axis=1)
+    lam = np.full(b, 1e-3)
+    done = np.zeros(b, dtype=bool)
+    for _ in range(iterations):
+        q = 1.0 / (1.0 + u * u)
+        jac = np.stack([q, p[:, 0:1] * 2 * u * q * q / p[:, 2:3], p[:, 0:1] * 2 * u * u * q * q / p[:, 2:3]], axis=2)
+        jtj = np.einsum("bmi,bmj->bij", jac, jac)
+        g = np.einsum("bmi,bm->bi", jac, r)
+        a = jtj + lam[:, None, None] * np.eye(3)[None] * np.maximum(np.diagonal(jtj, axis1=1, axis2=2), 1e-300)[:, :, None]
+        step = -np.linalg.solve(a, g[:, :, None])[:, :, 0]
+        trial = p + step
+        trial[:, 2] = np.abs(trial[:, 2])
+        rt, ut = residual(trial)
+        ct = np.sum(rt * rt, axis=1)
+        better = (ct <= cost) & ~done
+        small = better & (np.abs(step[:, 2]) <= 1e-10 * trial[:, 2]) & (np.abs(step[:, 1]) <= 1e-10 * bins.step)
+        p[better], r[better], u[better], cost[better] = trial[better], rt[better], ut[better], ct[better]
+        lam = np.where(better, lam / 3.0, lam * 4.0)
+        done |= small | (lam > 1e12)
+        if done.all():
+            break
+    return np.where(np.isfinite(p[:, 2]) & (p[:, 2] > 0), 2.0 * p[:, 2], np.nan)
+
+
+def lorentz_hist_fwhm(theta_deg: np.ndarray, spec: FwhmSpec = FwhmSpec()) -> float:
+    """FWHM = 2γ of a Lorentzian fitted by least squares to the histogram of the angles [degree]
+    (``lorentz-hist``, the source's estimator): bins of ``spec.bin_deg`` (default Freedman–Diaconis)
+    over the median ± ``spec.range_iqr`` interquartile ranges (at least ten bins each side).  0 where the
+    IQR is 0."""
+    x = np.asarray(theta_deg, dtype=np.float64)
+    if x.size < 2:
+        return float("nan")
+    bins = hist_bins(x, spec)
+    if bins is None:
+        return 0.0
+    return float(lorentz_hist_of_counts(bins.counts(x), bins)[0])
+
+
+def lorentz_ks(theta_deg: np.ndarray) -> float:
+    """The Kolmogorov–Smirnov distance between the angles and the Lorentz distribution fitted to
+    them by maximum likelihood: how well "Lorentz" describes the rays (0: exactly; a 1000-ray
+    Lorentzian sample gives about 0.03)."""
+    x = np.sort(np.asarray(theta_deg, dtype=np.float64))
+    if x.size < 2:
+        return float("nan")
+    loc, g = cauchy_fit(x)
+    if not g > 0:
+        return float("nan")
+    cdf = 0.5 + np.arctan((x - loc) / g) / math.pi
+    n = x.size
+    return float(max(np.max(np.arange(1, n + 1) / n - cdf), np.max(cdf - np.arange(n) / n)))
+
+
+def fwhm(theta_deg: np.ndarray, spec: FwhmSpec | str = FwhmSpec()) -> float:
+    """The FWHM of an angle sample [degree] by estimator ``spec`` (a :class:`FwhmSpec` or an
+    estimator's name): ``half-max`` (the default), ``lorentz-hist`` or ``lorentz-mle`` (2γ of the
+    Cauchy maximum-likelihood fit)."""
+    spec = FwhmSpec(spec) if isinstance(spec, str) else spec
+    x = np.asarray(theta_deg, dtype=np.float64)
+    if spec.estimator == LORENTZ_MLE:
+        return 2.0 * cauchy_fit(x)[1] if x.size else float("nan")
+    if spec.estimator == LORENTZ_HIST:
+        return lorentz_hist_fwhm(x, spec)
+    return half_max_fwhm(x)
+
 
 
 def haze(directions: np.ndarray, incident=(0.0, 1.0, 0.0)) -> float:
@@ -208,112 +416,6 @@ def voxels_read(result) -> int:
         per_interface = (2 * math.ceil(st.radius_vox) + 1) ** 3 * (1 + st.refit)
     voxel = result.voxel_um or 1.0  # None: the voxel backend's own result, lengths in voxels
     return int(np.sum(result.path / voxel) + np.sum(result.events) * per_interface)
-
-
-def summarize(result, *, n_boot: int = 200, seed: int = 0) -> dict:
-    """FWHM_R, FWHM_L (with CIs), haze and counts of a RayResult."""
-    t = result.transmitted
-    tr, tl = result.theta_r[t], result.theta_l[t]
-    lo_r, hi_r = fwhm_ci(tr, n_boot=n_boot, seed=seed)
-    lo_l, hi_l = fwhm_ci(tl, n_boot=n_boot, seed=seed + 1)
-    counts = result.counts()
-    h = haze(result.exit_direction[t], (0.0, 1.0, 0.0) if result.incident is None else result.incident[t])
-    n_haze = int(t.sum()) if result.incident is None else int((t & ~np.isnan(result.incident).any(axis=1)).sum())
-    return {
-        "fwhm_r_deg": fwhm(tr) if tr.size else float("nan"),
-        "fwhm_r_ci_deg": [lo_r, hi_r],
-        "fwhm_l_deg": fwhm(tl) if tl.size else float("nan"),
-        "fwhm_l_ci_deg": [lo_l, hi_l],
-        "haze": h,
-        "haze_ci": list(haze_ci(h, n_haze)),
-        "n_rays": int(result.status.size),
-        "n_transmitted": counts["transmitted"],
-        "n_lost": int(result.status.size - counts["transmitted"]),
-        "counts": counts,
-        "interfaces_per_ray": float(np.mean(result.events)),
-        "voxels_read": voxels_read(result),
-        "degenerate_normals": int(result.fallbacks[:, 0].sum()),
-        "face_disagreements": int(result.fallbacks[:, 1].sum()),
-        # Normals taken at the face point: walls thinner than the smoothing.
-        "thin_wall_normals": int(result.fallbacks[:, 2].sum()),
-        "method": result.settings.method,
-        "exit": result.settings.exit,
-    }
-
-
-
-def _percentile_ci(samples: np.ndarray, level: float) -> list:
-    a = (1.0 - level) / 2.0
-    ok = samples[np.isfinite(samples)]
-    if ok.size < 2:
-        return [float("nan"), float("nan")]
-    return [float(np.quantile(ok, a)), float(np.quantile(ok, 1.0 - a))]
-
-
-def pool(results: list, *, n_boot: int = 200, seed: int = 0, level: float = 0.95) -> dict:
-    """FWHM_R, FWHM_L and haze of the rays of several wood realisations pooled, with intervals
-    that include the wood-to-wood variation.
-
-    Parameters
-    ----------
-    results : list of RayResult
-        One per realisation of a scene (its wood and beam drawn with another seed).
-
-    Returns
-    -------
-    dict
-        The numbers of all transmitted rays pooled (realisation 0's first);
-        ``*_ci``: a hierarchical bootstrap, drawing realisations with
-        replacement and then rays within each drawn realisation, so the interval
-        holds the wood-to-wood variance as well as the ray sampling;
-        ``*_ray_ci``: the ray sampling alone (each realisation once, its rays
-        redrawn).  With one realisation the two coincide, and the haze
-        intervals are the Wilson interval of :func:`haze_ci`.
-    """
-    parts = []
-    for r in results:
-        t = r.transmitted
-        hz = deviates(r.exit_direction[t], (0.0, 1.0, 0.0) if r.incident is None else r.incident[t])
-        parts.append((r.theta_r[t], r.theta_l[t], hz))
-
-    def reduce(chosen):
-        tr = np.concatenate([parts[k][0][idx] for k, idx in chosen])
-        tl = np.concatenate([parts[k][1][idx] for k, idx in chosen])
-        hz = np.concatenate([parts[k][2][idx] for k, idx in chosen])
-        hz = hz[np.isfinite(hz)]
-        return (fwhm(tr) if tr.size else np.nan, fwhm(tl) if tl.size else np.nan,
-                float(hz.mean()) if hz.size else np.nan)
-
-    point = reduce([(k, np.arange(p[0].size)) for k, p in enumerate(parts)])
-    rng = np.random.default_rng(seed)
-    n_real = len(parts)
-    ray_only = np.empty((n_boot, 3))
-    nested = np.empty((n_boot, 3))
-    for b in range(n_boot):
-        ray_only[b] = reduce([(k, rng.integers(0, p[0].size, p[0].size)) for k, p in enumerate(parts)])
-        if n_real == 1:
-            nested[b] = ray_only[b]
-            continue
-        picks = rng.integers(0, n_real, n_real)
-        nested[b] = reduce([(k, rng.integers(0, parts[k][0].size, parts[k][0].size)) for k in picks])
-    n_haze = int(sum(np.isfinite(p[2]).sum() for p in parts))
-    wilson = list(haze_ci(point[2], n_haze, level=level))
-    counts = [r.counts()["transmitted"] for r in results]
-    n_rays = int(sum(r.status.size for r in results))
-    return {
-        "fwhm_r_deg": float(point[0]), "fwhm_l_deg": float(point[1]), "haze": float(point[2]),
-        "fwhm_r_ci_deg": _percentile_ci(nested[:, 0], level),
-        "fwhm_l_ci_deg": _percentile_ci(nested[:, 1], level),
-        "haze_ci": _percentile_ci(nested[:, 2], level) if n_real > 1 else wilson,
-        "fwhm_r_ray_ci_deg": _percentile_ci(ray_only[:, 0], level),
-        "fwhm_l_ray_ci_deg": _percentile_ci(ray_only[:, 1], level),
-        "haze_ray_ci": wilson,
-        "realisations": n_real,
-        "n_rays": n_rays,
-        "n_transmitted": int(sum(counts)),
-        "n_lost": int(n_rays - sum(counts)),
-        "interfaces_per_ray": float(np.mean(np.concatenate([r.events for r in results]))),
-    }
 
 
 def image_quality(image: np.ndarray, ideal: np.ndarray) -> dict:

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, limits
-from .analysis import Target, summarize
+from .analysis import FwhmSpec, Target
+from .summary import summarize
 from .optics.interface import STATUS_NAMES
 from .optics.media import wood_medium
 from .optics.rays import square_beam
@@ -50,6 +51,7 @@ class TraceJob:
     beam_origin_um: tuple | None = None
     incidence_deg: tuple | None = None
     target: Target | None = None
+    fwhm: FwhmSpec = FwhmSpec()  # which width FWHM_R and FWHM_L are
 
     @property
     def traced_voxel_um(self) -> float:
@@ -117,7 +119,7 @@ def run(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:
         return square_beam(n, job.beam_um, centre, seed=job.seed, direction=job.direction)
 
     result, summary = trace_to_target(medium, beam, job.optics, job.settings, rays=job.rays, target=job.target,
-                                      summarize=lambda r: summarize(r, seed=job.seed), progress=progress)
+                                      summarize=lambda r: summarize(r, spec=job.fwhm, seed=job.seed), progress=progress)
     if job.target is not None:
         summary["target_ci"] = job.target.to_dict()
         summary["target_ci_met"] = job.target.met(summary)
@@ -141,7 +143,7 @@ def job_inputs(job: TraceJob, centre) -> dict:
             "voxel_um": job.voxel_um, "traced_voxel_um": job.traced_voxel_um, "delta_ri": job.optics.delta_ri,
             "ri_polymer": job.optics.n_poly, "rays": job.rays, "beam_um": job.beam_um,
             "beam_centre_um": list(centre), "incidence_deg": list(job.incidence_deg or (0.0, 0.0)),
-            "seed": job.seed, "settings": job.settings.to_dict()}
+            "seed": job.seed, "settings": job.settings.to_dict(), "fwhm": job.fwhm.to_dict()}
 
 
 def _finite_or_none(value):

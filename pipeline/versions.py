@@ -13,8 +13,11 @@ from __future__ import annotations
 #            them (ray columns are a property of the lattice); wood with ray cells holds the same voxels.
 #   rays 4: positions and path lengths stored in µm (the tracer interface's units), not voxels.
 #   summary 4: γ = 0 exactly where more than half the angles are equal (it was ~1e-187).
-#   pool 1: wood realisations pooled.
-STAGES = {"micro": "3", "rays": "4", "summary": "4", "pool": "1"}
+#   summary 5: every width estimator (half-max the default, lorentz-hist, lorentz-mle), no interval
+#              (a wood's own value; the pool holds the intervals).
+#   pool 2: every estimator; intervals from resampling woods only (t on R - 1 d.o.f.), 2000 resamples;
+#           variance components.
+STAGES = {"micro": "3", "rays": "4", "summary": "5", "pool": "2"}
 
 # The generator's version: the voxels of every wood (pinned by tests/test_microstructure.py).
 GENERATOR = STAGES["micro"]

@@ -448,7 +448,7 @@ def test_trace_exact_on_generated_wood_reads_no_voxels_and_a_volume_is_refused(t
 def test_trace_a_reference_lattice_by_name_with_exact_and_with_a_voxel_method(tmp_path, capsys):
     """``--reference`` traces a lattice of exact optics: ``exact`` gives what the independent exact
     tracer gives on the same beam; a voxel method traces the lattice's voxelisation."""
-    from pipeline.analysis import summarize
+    from pipeline.summary import summarize
     from pipeline.optics.lattice import tube_lattice
     from pipeline.optics.rays import square_beam
     from pipeline.optics.settings import Optics, settings_for

@@ -12,7 +12,7 @@ import zlib
 import numpy as np
 import pytest
 
-from pipeline.analysis import summarize
+from pipeline.summary import summarize
 from pipeline.microstructure import region as R
 from pipeline.microstructure.model import generate_block
 from pipeline.optics import interface

@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.analysis import summarize
+from pipeline.summary import summarize
 from pipeline.optics import interface
 from pipeline.optics.sources import ArraySource, WoodSource
 from pipeline.optics.rays import Beam, square_beam

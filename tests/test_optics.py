@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy import ndimage, optimize, stats
 
-from pipeline.analysis import cauchy_fit, fwhm, fwhm_ci, haze, summarize
+from pipeline.analysis import cauchy_fit, fwhm, haze
+from pipeline.summary import fwhm_ci, summarize
 from pipeline.optics import _normals, _packing, interface
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.rays import Beam, square_beam

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.analysis import fwhm, pool
+from pipeline.analysis import fwhm
+from pipeline.summary import pool
 from pipeline.cli import main
 from pipeline.optics.rays import RayResult
 from pipeline.optics.settings import settings_for

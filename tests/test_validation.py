@@ -162,7 +162,7 @@ def test_unbiased_normal_noise_of_a_tenth_of_a_degree_barely_moves_the_results()
                       normal_noise_deg=0.1)
     assert np.array_equal(b.direction, again.direction)
     assert not np.array_equal(a.direction, b.direction)
-    assert abs(fwhm(b.theta_r) / fwhm(a.theta_r) - 1) < 0.05
+    assert abs(fwhm(b.theta_r, "lorentz-mle") / fwhm(a.theta_r, "lorentz-mle") - 1) < 0.05
     assert abs(haze(b.direction) - haze(a.direction)) < 0.02
 
 

@@ -18,7 +18,7 @@ from ..params import ParameterError
 from ..runlog import RunFailed
 from .args import EXIT_ENVIRONMENT, EXIT_INTERRUPTED, EXIT_USAGE, Parser, YES_HELP, subparser
 from .graphs import add_camera, add_study
-from .outputs import add_cache, add_design, add_figures
+from .outputs import add_cache, add_design, add_figures, add_resummarize
 from .trace import add_trace
 from .volumes import add_generate, cmd_export_tiff, cmd_info, cmd_slices
 
@@ -34,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_cache(sub)
     add_figures(sub)
     add_design(sub)
+    add_resummarize(sub)
     p = subparser(sub, "slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
     p.add_argument("volume", help="a twray volume (.zarr)")
     p.add_argument("--out", required=True, help="output directory")

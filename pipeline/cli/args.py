@@ -47,7 +47,8 @@ EXAMPLES = {
                   "twray generate --config my-wood.yaml --size-um 300,300,300 --workers 2 --out w.zarr"]),
     "trace": ("Trace a square beam of rays through generated wood (--preset, made lazily as rays reach it) "
               "or a user volume (--volume) with Snell refraction and total internal reflection, and report "
-              "FWHM_R and FWHM_L (Lorentz fits with bootstrap 95 % intervals) and haze.",
+              "FWHM_R and FWHM_L (by --fwhm: half-max, the default, lorentz-hist or lorentz-mle, with bootstrap "
+              "95 % intervals) and haze.",
               ["twray trace --preset birch --thickness-mm 0.5 --delta-ri 0.01",
                "twray trace --volume sample.zarr --delta-ri -0.02 --rays 4000 --method fast --json",
                "twray trace --preset balsa --thickness-mm 1 --delta-ri 0.02 --exit air --out rays.nc"]),
@@ -89,6 +90,10 @@ EXAMPLES = {
     "info": ("Print a volume's shape, voxel size, origin, parameters and how many chunks are generated, "
              "as JSON.",
              ["twray info birch.zarr"]),
+    "resummarize": ("Recompute a study Dataset's FWHM, haze and intervals from its own rays (no ray traced): "
+                    "every width estimator, intervals over woods, variance components.",
+                    ["twray resummarize results/paper/study-1.zarr",
+                     "twray resummarize results/paper/design/*.zarr --fwhm lorentz-hist"]),
 }
 
 

@@ -191,3 +191,31 @@ def cmd_report(args) -> int:
         print(f"twray report: {len(missing)} linked figures do not exist yet (run `make figures`): "
               f"{', '.join(missing)}", file=sys.stderr)
     return 0
+
+
+def add_resummarize(sub):
+    p = subparser(sub, "resummarize", help="recompute a study Dataset's FWHM, haze and intervals from its own rays")
+    p.add_argument("datasets", nargs="+", metavar="STUDY.zarr", help="study Datasets (twray study's outputs)")
+    p.add_argument("--fwhm", default=None, metavar="ESTIMATOR",
+                   help="half-max, lorentz-hist or lorentz-mle (default: the Dataset's own, else half-max)")
+    p.set_defaults(func=cmd_resummarize)
+
+
+def cmd_resummarize(args) -> int:
+    from ..analysis import ESTIMATORS, FwhmSpec
+    from ..study.summaries import resummarize_file
+
+    if args.fwhm is not None and args.fwhm not in ESTIMATORS:
+        raise ParameterError(f"`fwhm` must be one of {', '.join(ESTIMATORS)}, got fwhm={args.fwhm!r}")
+    paths = [Path(d) for d in args.datasets]
+    for path in paths:
+        if not (path / "zarr.json").is_file():
+            raise ParameterError(f"`datasets` must be study Datasets (.zarr), got {str(path)!r}")
+    for path in paths:
+        try:
+            pooled = resummarize_file(path, spec=FwhmSpec(args.fwhm) if args.fwhm else None)
+        except ValueError as exc:
+            raise ParameterError(f"`{path}`: {exc}") from None
+        print(f"{path}: {len(pooled)} values re-summarised ({pooled[0]['fwhm']['estimator']}, "
+              f"{pooled[0]['realisations']} woods)")
+    return 0

@@ -53,6 +53,10 @@ def add_trace(sub):
                         "--rays is the first batch, doubled up to --max-rays")
     p.add_argument("--target-ci-fwhm", default=None, metavar="DEG",
                    help="with or without --target-ci: also until the CI half-widths of FWHM_R and FWHM_L are at most DEG")
+    p.add_argument("--fwhm", default="half-max", metavar="ESTIMATOR",
+                   help="which width FWHM_R and FWHM_L are: half-max (the distribution's width at half its "
+                        "maximum, default), lorentz-hist (a Lorentzian fitted to the histogram, the source's) or "
+                        "lorentz-mle (2γ of a Cauchy maximum-likelihood fit); --json prints all three")
     p.add_argument("--max-rays", default="64000", help="most rays a --target-ci trace uses (default 64000)")
     p.add_argument("--out", default=None, help="per-ray dataset (.nc or .zarr)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
@@ -77,6 +81,7 @@ def cmd_trace(args) -> int:
                              n_outside=1.0 if args.incidence_deg is not None else None).validate()
     rays = integer(args.rays, "rays", 1)
     target = _trace_target(args, rays)
+    fwhm_spec = _fwhm_spec(args.fwhm)
     beam_um = number(args.beam_um, "beam_um")
     if not beam_um > 0:
         raise ParameterError(f"`beam_um` must be > 0 µm, got beam_um={beam_um:g}")
@@ -123,7 +128,8 @@ def cmd_trace(args) -> int:
         origin = tuple(number(v, "beam_origin_um") for v in parts)
     job = TraceJob(settings=settings, optics=optics, rays=rays, beam_um=beam_um, voxel_um=voxel,
                    seed=optics.seed, volume=args.volume, wood=wood, reference=ref, thickness_um=thickness_um,
-                   beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target)
+                   beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target,
+                   fwhm=fwhm_spec)
     medium, centre, est = medium_of(job)
     limits.check(limits.startup(1) + est, what=f"`trace` of {rays if target is None else target.max_rays} rays", yes=args.yes,
                  fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
@@ -139,10 +145,19 @@ def cmd_trace(args) -> int:
             "; target_ci met" if summary["target_ci_met"] else f"; target_ci NOT met at max_rays {target.max_rays}")
         print(f"{summary['n_transmitted']}/{summary['n_rays']} transmitted "
               f"(method {summary['method']}, exit {summary['exit']}): "
-              f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}°, "
+              f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}° ({fwhm_spec.estimator}), "
               f"haze {100 * summary['haze']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}], "
               f"{summary['seconds']:.1f} s{met}")
     return 0
+
+
+def _fwhm_spec(name: str):
+    """``--fwhm``: an estimator's name."""
+    from ..analysis import ESTIMATORS, FwhmSpec
+
+    if name not in ESTIMATORS:
+        raise ParameterError(f"`fwhm` must be one of {', '.join(ESTIMATORS)}, got fwhm={name!r}")
+    return FwhmSpec(name)
 
 
 def _optional(text, field):

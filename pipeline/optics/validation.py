@@ -120,7 +120,7 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
 
     from scipy import stats
 
-    from ..analysis import fwhm, haze
+    from ..analysis import LORENTZ_MLE as MLE, fwhm, haze
     from .rays import square_beam
     from .settings import Optics, traced_voxel_um
     from .trace import trace
@@ -134,7 +134,7 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
     vx = trace(lattice.source(thickness_um=thickness_um, voxel_um=voxel_um, chunks=chunks), beam, optics, settings)
     elapsed = time.perf_counter() - t0
     te, tv = ex.transmitted, vx.transmitted
-    fe, fv = fwhm(ex.theta_r[te]), fwhm(vx.theta_r[tv])
+    fe, fv = fwhm(ex.theta_r[te], MLE), fwhm(vx.theta_r[tv], MLE)
     he, hv = haze(ex.direction[te]), haze(vx.direction[tv])
     out = {
         # Relative to the exact width, unless that is too narrow (< 0.05°) for a ratio to mean anything.
@@ -154,6 +154,6 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
         errs = []
         for _ in range(n_boot):
             k = rng.integers(0, xe.size, xe.size)
-            errs.append(fwhm(xv[k]) / fwhm(xe[k]) - 1.0)
+            errs.append(fwhm(xv[k], MLE) / fwhm(xe[k], MLE) - 1.0)
         out["fwhm_r_error_ci"] = [float(np.quantile(errs, 0.025)), float(np.quantile(errs, 0.975))]
     return out

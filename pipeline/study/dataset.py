@@ -9,7 +9,8 @@ import numpy as np
 
 from .. import __version__
 from ..publish import is_current, publish_dataset
-from .plan import N_BOOT, Plan, read_entry, target_met
+from .plan import Plan, read_entry, target_met
+from .summaries import describe_intervals, summary_variables
 from .spec import scene_record
 from .tasks import load_rays
 
@@ -38,36 +39,8 @@ def study_dataset(plan: Plan):
         rays.append([load_rays(plan.shards_of(s), st.realisation(pool.scene_index, s.realisation))[0]
                      for s in mine])
     codes = sorted(STATUS_NAMES)
-    hier = "hierarchical bootstrap (realisations, then rays) 95 % interval"
-    per_value = {  # name: (value of a pooled summary, long_name, units)
-        "FWHM_R": (lambda s: s["fwhm_r_deg"], "FWHM of the Lorentz fit to theta_R, realisations pooled", "degree"),
-        "FWHM_L": (lambda s: s["fwhm_l_deg"], "FWHM of the Lorentz fit to theta_L, realisations pooled", "degree"),
-        "haze": (lambda s: s["haze"], "fraction of transmitted rays deviating more than 2.5 degree, "
-                                      "realisations pooled", "1"),
-        "FWHM_R_ci_lower": (lambda s: s["fwhm_r_ci_deg"][0], f"{hier} of FWHM_R, lower", "degree"),
-        "FWHM_R_ci_upper": (lambda s: s["fwhm_r_ci_deg"][1], f"{hier} of FWHM_R, upper", "degree"),
-        "FWHM_L_ci_lower": (lambda s: s["fwhm_l_ci_deg"][0], f"{hier} of FWHM_L, lower", "degree"),
-        "FWHM_L_ci_upper": (lambda s: s["fwhm_l_ci_deg"][1], f"{hier} of FWHM_L, upper", "degree"),
-        "haze_ci_lower": (lambda s: s["haze_ci"][0], f"{hier} of haze, lower", "1"),
-        "haze_ci_upper": (lambda s: s["haze_ci"][1], f"{hier} of haze, upper", "1"),
-        "FWHM_R_ray_ci_lower": (lambda s: s["fwhm_r_ray_ci_deg"][0],
-                                "bootstrap 95 % interval of FWHM_R over rays alone, lower", "degree"),
-        "FWHM_R_ray_ci_upper": (lambda s: s["fwhm_r_ray_ci_deg"][1],
-                                "bootstrap 95 % interval of FWHM_R over rays alone, upper", "degree"),
-        "FWHM_L_ray_ci_lower": (lambda s: s["fwhm_l_ray_ci_deg"][0],
-                                "bootstrap 95 % interval of FWHM_L over rays alone, lower", "degree"),
-        "FWHM_L_ray_ci_upper": (lambda s: s["fwhm_l_ray_ci_deg"][1],
-                                "bootstrap 95 % interval of FWHM_L over rays alone, upper", "degree"),
-        "haze_ray_ci_lower": (lambda s: s["haze_ray_ci"][0], "Wilson 95 % interval of haze over rays alone, lower", "1"),
-        "haze_ray_ci_upper": (lambda s: s["haze_ray_ci"][1], "Wilson 95 % interval of haze over rays alone, upper", "1"),
-        "n_transmitted": (lambda s: s["n_transmitted"], "rays leaving through the far L-R face, all realisations", "1"),
-        "n_lost": (lambda s: s["n_lost"], "rays not transmitted (reflected, side, trapped), all realisations", "1"),
-        "interfaces_per_ray": (lambda s: s["interfaces_per_ray"], "mean interfaces met per ray, all realisations", "1"),
-    }
+    data = {name: ((dim,) + rest, values, attrs) for name, (rest, values, attrs) in summary_variables(pooled).items()}
     per_realisation = {  # name: (value of a realisation's summary, long_name, units)
-        "FWHM_R_per_realisation": (lambda s: s["fwhm_r_deg"], "FWHM_R of each realisation", "degree"),
-        "FWHM_L_per_realisation": (lambda s: s["fwhm_l_deg"], "FWHM_L of each realisation", "degree"),
-        "haze_per_realisation": (lambda s: s["haze"], "haze of each realisation", "1"),
         "interfaces_per_ray_per_realisation": (lambda s: s["interfaces_per_ray"],
                                                "mean interfaces met per ray in each realisation", "1"),
         "n_transmitted_per_realisation": (lambda s: s["n_transmitted"],
@@ -81,8 +54,6 @@ def study_dataset(plan: Plan):
             "long_name": "ray status", "flag_values": codes,
             "flag_meanings": " ".join(STATUS_NAMES[c] for c in codes)}),
     }
-    data = {name: (dim, np.array([get(s) for s in pooled]), {"long_name": ln, "units": u})
-            for name, (get, ln, u) in per_value.items()}
     data.update({name: ((dim, "realisation"), np.array([[get(s) for s in row] for row in each]),
                         {"long_name": ln, "units": u})
                  for name, (get, ln, u) in per_realisation.items()})
@@ -126,18 +97,12 @@ def study_dataset(plan: Plan):
             "scenes": json.dumps([scene_record(s) for s in st.scenes]),
         },
     )
-    from ..analysis import HAZE_ANGLE_DEG
-    from ..provenance import link_intervals, provenance_attrs
+    from ..provenance import provenance_attrs
 
     ds.attrs.update(provenance_attrs({"study": st.name, "scale": st.scale, "realisations": R,
                                       "scenes": [scene_record(s) for s in st.scenes]},
                                      st.scenes[0].settings.method))
-    link_intervals(ds, 0.95, N_BOOT)
-    for bound in ("haze_ray_ci_lower", "haze_ray_ci_upper") + (
-            ("haze_ci_lower", "haze_ci_upper") if R == 1 else ()):
-        ds[bound].attrs.pop("bootstrap_resamples", None)
-        ds[bound].attrs["interval"] = "Wilson score (binomial)"
-    ds["haze"].attrs["threshold_deg"] = HAZE_ANGLE_DEG
+    describe_intervals(ds, pooled[0])
     target = st.scenes[0].target
     ds.attrs["rays"] = n_rays
     # What was traced (``thickness_traced`` above), which a reduced scale makes differ from the study's numbers.

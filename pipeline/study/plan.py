@@ -35,9 +35,9 @@ from .. import __version__, versions
 from ..cache import DamagedEntry, cache_key, check_json, check_npz, read_json, sound
 from ..microstructure.store import CHUNKS, WoodChunkStore, wood_record
 from ..optics.trace import next_rays
+from ..summary import N_BOOT
 from .spec import SCALES, Scene, Study, with_realisations, with_rays
 
-N_BOOT = 200
 
 
 @dataclass
@@ -204,8 +204,8 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
             path = cache_dir / "rays" / f"{key}.npz"
             shards.append(Shard(key, path, i, lo, hi, mkey, sound(check_npz, path, key), record, r))
             keys.append(key)
-        srecord = {"stage": "summary", "version": versions.STAGES["summary"], "rays": keys, "n_boot": N_BOOT,
-                   "seed": scene.seed}
+        srecord = {"stage": "summary", "version": versions.STAGES["summary"], "rays": keys, "n_boot": 0,
+                   "fwhm": scene.fwhm.to_dict(), "seed": scene.seed}
         skey = cache_key(srecord)
         spath = cache_dir / "summary" / f"{skey}.json"
         # A summary is reused with every shard of it sound (the Dataset reads the rays too).
@@ -216,7 +216,7 @@ def plan_study(study: Study, cache_dir, *, shard_rays: int = 250) -> Plan:
     for i, scene in enumerate(study.scenes):
         mine = sorted((s for s in summaries if s.scene_index == i), key=lambda s: s.realisation)
         precord = {"stage": "pool", "version": versions.STAGES["pool"], "summaries": [s.key for s in mine],
-                   "n_boot": N_BOOT, "seed": scene.seed}
+                   "n_boot": N_BOOT, "seed": scene.seed, "fwhm": scene.fwhm.to_dict()}
         pkey = cache_key(precord)
         ppath = cache_dir / "pool" / f"{pkey}.json"
         pools.append(Pool(pkey, ppath, i, [s.key for s in mine],

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..analysis import Target
+from ..analysis import FwhmSpec, Target
 from ..optics.references import REFERENCE_FIELDS, REFERENCES, Reference, reference
 from ..optics.settings import (Optics, TraceSettings, chosen_method, settings_for, traced_voxel_um,
                                wall_index)
@@ -67,7 +67,7 @@ SCALES = {
 REALISATIONS = 5
 
 _TOP = {"title", "description", "preset", "wood", "reference", "seed", "thickness_mm", "delta_ri",
-        "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary", "target_ci", "realisations"}
+        "ri_polymer", "rays", "beam_um", "voxel_um", "trace", "vary", "target_ci", "realisations", "fwhm"}
 _TRACE = {"method", "exit", "fresnel", "refine", "step_vox"}
 _SCENE_VARIABLES = {
     # name: (dimension, units, long_name)
@@ -94,6 +94,7 @@ class Scene:
     target: Target | None = None  # trace to this precision: `rays` is then the first batch
     realisation: int = 0  # which wood of the study's realisations (seed = study seed + realisation)
     reference: Reference | None = None  # a reference lattice instead of wood
+    fwhm: FwhmSpec = FwhmSpec()  # which width FWHM_R and FWHM_L are (not part of the rays' keys)
 
     @property
     def pitch_um(self) -> float:
@@ -294,6 +295,7 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
     n_rays = max(1, int(round(rays * f["rays"])))
     if rays_override is not None:
         n_rays = rays_override
+    fwhm_spec = _fwhm(data.get("fwhm"), fail)
     target = (_target(data.get("target_ci"), n_rays, f["rays"], n_real, f["realisations"], fail)
               if "target_ci" in data else None)
     scenes = []
@@ -350,7 +352,8 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         scenes.append(Scene(value=v, wood=params, seed=int(seed), voxel_um=voxel_um,
                             thickness_um=thickness_um, ri_polymer=n_poly,
                             delta_ri=scene_vars["delta_ri"], rays=n_rays,
-                            beam_um=beam_um * f["beam"], settings=settings, target=target, reference=ref))
+                            beam_um=beam_um * f["beam"], settings=settings, target=target, reference=ref,
+                            fwhm=fwhm_spec))
 
     first = axes[0]
     dimension = first.dimension if len(axes) == 1 else " × ".join(a.dimension for a in axes)
@@ -439,6 +442,19 @@ def _reference_fields(data: dict, fail) -> dict:
     return {"name": value["name"], **out}
 
 
+def _fwhm(value, fail) -> FwhmSpec:
+    """``fwhm``: {estimator, bin_deg, range_iqr} (docs/methods.md#fwhm-and-haze)."""
+    if value is None:
+        return FwhmSpec()
+    if not isinstance(value, dict):
+        fail(("fwhm",), f"`fwhm` must be a mapping such as {{estimator: half-max}}, got {value!r}")
+    try:
+        return FwhmSpec.from_dict(value)
+    except (TypeError, ValueError) as exc:
+        key = re.match(r"\W*`fwhm\.(\w+)`|unknown key `fwhm\.(\w+)`", str(exc))
+        fail(("fwhm",) + ((next(g for g in key.groups() if g),) if key else ()), str(exc))
+
+
 def _target(value, n_rays: int, factor: float, n_real: int, real_cap: int | None, fail) -> Target:
     """``target_ci``: a haze half-width, or {haze, fwhm_deg, fwhm_r_rel, over, max_rays,
     max_realisations} (max_rays scaled as rays; max_realisations at most the scale's cap)."""
@@ -498,5 +514,6 @@ def scene_record(scene: Scene) -> dict:
     out = dataclasses.asdict(scene)
     out["wood"] = None if scene.wood is None else scene.wood.to_dict()
     out["settings"] = scene.settings.to_dict()
+    out["fwhm"] = scene.fwhm.to_dict()
     out["value"] = scene.value if not isinstance(scene.value, tuple) else list(scene.value)
     return out

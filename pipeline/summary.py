@@ -1,0 +1,271 @@
+"""Summaries of traced rays: every width estimator and haze, with intervals that count each
+source of variation once (docs/methods.md#realisations-and-intervals).
+
+One wood: the rays are the sample, and an interval is a percentile bootstrap over them.  Several
+woods: each wood is one draw of the microstructure, and its rays are a sample within it.  The
+pooled value's interval comes from resampling woods only, each drawn wood with all its rays: the
+spread of the woods' pooled rays already holds the ray noise once, so redrawing rays inside them
+(a nested bootstrap) would count it twice.  The woods' bootstrap standard error, scaled by
+√(R/(R − 1)), with Student's t on R − 1 degrees of freedom, gives the interval (for a mean of equal
+woods this is exactly the classical t interval of their means).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .analysis import (ESTIMATORS, LORENTZ_MLE, FwhmSpec, cauchy_fit, deviates, fwhm, half_max_of_counts,
+                       haze_ci, hist_bins, kde_plan, lorentz_hist_of_counts, lorentz_ks, voxels_read)
+
+N_BOOT = 2000  # resamples: the bounds move by about 1/√(2 · 2000) ≈ 1.6 % of the half-width from seed to seed
+N_BOOT_WOOD = 200  # resamples of one wood's rays for the ray part of the variance components
+LEVEL = 0.95
+_CHUNK = 100  # bootstrap rows at a time (memory: rows × rays)
+INTERVAL_WOODS = "woods bootstrap (all rays of each drawn wood), standard error × √(R/(R−1)), Student t on R−1 d.o.f."
+INTERVAL_RAYS = "bootstrap percentile over rays"
+
+
+def t_interval(point: float, draws: np.ndarray, n_woods: int, level: float = LEVEL) -> list:
+    """``point`` ± t(R − 1) · SE, SE the standard deviation of the woods' bootstrap ``draws`` scaled
+    by √(R/(R − 1)) (the bootstrap over R clusters sees (R − 1)/R of their variance)."""
+    from scipy.stats import t as student_t
+
+    ok = draws[np.isfinite(draws)]
+    if ok.size < 2 or n_woods < 2 or not math.isfinite(point):
+        return [float("nan"), float("nan")]
+    se = float(np.std(ok, ddof=1)) * math.sqrt(n_woods / (n_woods - 1))
+    half = float(student_t.ppf(0.5 + level / 2.0, n_woods - 1)) * se
+    return [point - half, point + half]
+
+
+def percentile_interval(draws: np.ndarray, level: float = LEVEL) -> list:
+    a = (1.0 - level) / 2.0
+    ok = draws[np.isfinite(draws)]
+    if ok.size < 2:
+        return [float("nan"), float("nan")]
+    return [float(np.quantile(ok, a)), float(np.quantile(ok, 1.0 - a))]
+
+
+def woods_weights(n_woods: int, n_boot: int, rng: np.random.Generator) -> np.ndarray:
+    """(n_boot, n_woods): how many times each wood is drawn in each resample of the woods."""
+    picks = rng.integers(0, n_woods, (n_boot, n_woods))
+    return np.stack([np.bincount(p, minlength=n_woods) for p in picks]).astype(np.float64)
+
+
+class Angles:
+    """One projected angle (θ_R or θ_L) of the transmitted rays of several woods, with the binned
+    grids of the histogram estimators fixed from the pooled sample (held for every resample)."""
+
+    def __init__(self, parts: list, spec: FwhmSpec):
+        self.parts = [np.asarray(p, dtype=np.float64) for p in parts]
+        self.x = np.concatenate(self.parts) if self.parts else np.empty(0)
+        self.spec = spec
+        ok = self.x.size >= 2
+        self.kde = kde_plan(self.x) if ok else None
+        self.hist = hist_bins(self.x, spec) if ok else None
+
+    def _grid(self, est: str):
+        if est == "half-max":
+            return None if self.kde is None else self.kde[0]
+        return self.hist
+
+    def of_counts(self, est: str, counts: np.ndarray) -> np.ndarray:
+        if est == "half-max":
+            return half_max_of_counts(counts, *self.kde)
+        return lorentz_hist_of_counts(counts, self.hist)
+
+    def point(self, est: str) -> float:
+        spec = FwhmSpec(est, self.spec.bin_deg, self.spec.range_iqr)
+        return fwhm(self.x, spec) if self.x.size else float("nan")
+
+    def woods_draws(self, est: str, weights: np.ndarray) -> np.ndarray:
+        """The estimate on each resample of woods (rows of ``weights``)."""
+        if self.x.size < 2:
+            return np.full(len(weights), np.nan)
+        if est == LORENTZ_MLE:
+            return np.array([2.0 * cauchy_fit(np.concatenate([np.repeat(p, 0) if w == 0 else
+                                                             np.tile(p, int(w)) for p, w in zip(self.parts, row)]))[1]
+                             for row in weights])
+        grid = self._grid(est)
+        if grid is None:
+            return np.zeros(len(weights))
+        counts = np.stack([grid.counts(p) for p in self.parts])
+        return self.of_counts(est, weights @ counts)
+
+    def ray_draws(self, est: str, picks: list) -> np.ndarray:
+        """The estimate on each resample of rays: ``picks`` holds per wood an array (rows, n_k) of
+        ray indices."""
+        rows = picks[0].shape[0] if picks else 0
+        if self.x.size < 2:
+            return np.full(rows, np.nan)
+        if est == LORENTZ_MLE:
+            return np.array([2.0 * cauchy_fit(np.concatenate([p[i[b]] for p, i in zip(self.parts, picks)]))[1]
+                             for b in range(rows)])
+        grid = self._grid(est)
+        if grid is None:
+            return np.zeros(rows)
+        flat = []
+        for p, i in zip(self.parts, picks):
+            b = grid.index(p)[i]
+            flat.append((b + grid.m * np.arange(rows)[:, None])[b >= 0])
+        counts = np.bincount(np.concatenate(flat), minlength=rows * grid.m).reshape(rows, grid.m)
+        return self.of_counts(est, counts.astype(np.float64))
+
+
+def fwhm_ci(theta_deg: np.ndarray, *, n_boot: int = N_BOOT, seed: int = 0, level: float = LEVEL,
+            estimator: str = "half-max") -> list:
+    """Bootstrap percentile interval over the rays of one sample's FWHM by ``estimator`` [degree]."""
+    x = np.asarray(theta_deg, dtype=np.float64)
+    if x.size < 2:
+        return [float("nan"), float("nan")]
+    rng = np.random.default_rng(seed)
+    a = Angles([x], FwhmSpec(estimator))
+    draws = np.concatenate([a.ray_draws(estimator, [rng.integers(0, x.size, (min(_CHUNK, n_boot - lo), x.size))])
+                            for lo in range(0, n_boot, _CHUNK)])
+    return percentile_interval(draws, level)
+
+
+def _components(each: np.ndarray, ray_var: np.ndarray) -> dict:
+    """Between-wood and within-wood (ray) standard deviations of one wood's value: the woods'
+    variance minus the mean ray variance of one wood's value (method of moments, at least 0)."""
+    ok = np.isfinite(each) & np.isfinite(ray_var)
+    if ok.sum() < 2:
+        return {"between_woods": float("nan"), "rays_per_wood": float(math.sqrt(np.mean(ray_var[ok])))
+                if ok.any() else float("nan")}
+    within = float(np.mean(ray_var[ok]))
+    return {"between_woods": math.sqrt(max(0.0, float(np.var(each[ok], ddof=1)) - within)),
+            "rays_per_wood": math.sqrt(within)}
+
+
+def reduce_angles(parts: list, *, spec: FwhmSpec = FwhmSpec(), n_boot: int = N_BOOT, seed: int = 0,
+                  level: float = LEVEL) -> dict:
+    """Every estimator's FWHM_R and FWHM_L and the haze of the transmitted rays of one or more woods
+    pooled, with intervals.
+
+    Parameters
+    ----------
+    parts : list of (theta_r, theta_l, deviated)
+        Per wood: the transmitted rays' angles [degree] and whether each deviates more than 2.5°
+        (1.0, 0.0, or NaN where undefined).
+    spec : FwhmSpec
+        Which estimator ``fwhm_*_deg`` is (the others are under ``estimators``).
+    n_boot : int
+        Resamples per interval; 0 computes no interval.
+
+    Returns
+    -------
+    dict
+        ``fwhm_r_deg``, ``fwhm_l_deg``, ``haze`` and their intervals ``*_ci``: with one wood over
+        its rays, with several over the woods (:func:`t_interval`); ``*_ray_ci``: the rays alone
+        (haze: Wilson's interval); ``estimators``: each estimator's values, intervals and per-wood
+        values; ``lorentz_ks_r``/``_l``; ``components``: between-wood and ray standard deviations of
+        one wood's value.
+    """
+    n_real = len(parts)
+    rng = np.random.default_rng(seed)
+    angles = {q: Angles([p[i] for p in parts], spec) for i, q in ((0, "r"), (1, "l"))}
+    dev = [np.asarray(p[2], dtype=np.float64) for p in parts]
+    dev_n = np.array([np.isfinite(d).sum() for d in dev], dtype=np.float64)
+    dev_k = np.array([np.nansum(d) for d in dev], dtype=np.float64)
+    n_haze = int(dev_n.sum())
+    haze = float(dev_k.sum() / n_haze) if n_haze else float("nan")
+    nan2 = [float("nan"), float("nan")]
+    est_out = {e: {} for e in ESTIMATORS}
+    for q, a in angles.items():
+        for e in ESTIMATORS:
+            one = FwhmSpec(e, spec.bin_deg, spec.range_iqr)
+            est_out[e][f"fwhm_{q}_deg"] = a.point(e)
+            est_out[e][f"fwhm_{q}_each"] = [fwhm(p, one) if p.size else float("nan") for p in a.parts]
+            est_out[e][f"fwhm_{q}_ci_deg"] = nan2
+    out = {"haze_ci": nan2, "haze_ray_ci": list(haze_ci(haze, n_haze, level=level))}
+    ray_ci = {q: nan2 for q in angles}
+    if n_boot and n_real > 1:
+        w = woods_weights(n_real, n_boot, rng)
+        for q, a in angles.items():
+            for e in ESTIMATORS:
+                est_out[e][f"fwhm_{q}_ci_deg"] = t_interval(est_out[e][f"fwhm_{q}_deg"], a.woods_draws(e, w), n_real, level)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out["haze_ci"] = t_interval(haze, (w @ dev_k) / (w @ dev_n), n_real, level)
+    if n_boot:
+        # Rays alone: every wood once, its rays redrawn (with one wood, every estimator's interval).
+        ests = ESTIMATORS if n_real == 1 else (spec.estimator,)
+        draws = {(q, e): [] for q in angles for e in ests}
+        sizes = [a.size for a in angles["r"].parts]
+        for lo in range(0, n_boot, _CHUNK):
+            rows = min(_CHUNK, n_boot - lo)
+            picks = [rng.integers(0, n, (rows, n)) for n in sizes]
+            for (q, e), acc in draws.items():
+                acc.append(angles[q].ray_draws(e, picks))
+        for (q, e), acc in draws.items():
+            ci = percentile_interval(np.concatenate(acc), level)
+            if e == spec.estimator:
+                ray_ci[q] = ci
+            if n_real == 1:
+                est_out[e][f"fwhm_{q}_ci_deg"] = ci
+        if n_real == 1:
+            out["haze_ci"] = out["haze_ray_ci"]
+    chosen = est_out[spec.estimator]
+    comps = {}
+    if n_boot and n_real > 1:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            p_k = dev_k / dev_n
+            comps["haze"] = _components(p_k, p_k * (1.0 - p_k) / np.maximum(dev_n - 1.0, 1.0))
+        for q, a in angles.items():
+            one = FwhmSpec(spec.estimator, spec.bin_deg, spec.range_iqr)
+            ray_var = []
+            for p in a.parts:  # each wood's value from its own rays, redrawn
+                sub = Angles([p], one)
+                pick = [rng.integers(0, p.size, (N_BOOT_WOOD, p.size))] if p.size >= 2 else [np.zeros((0, 0), int)]
+                d = sub.ray_draws(spec.estimator, pick) if p.size >= 2 else np.array([np.nan])
+                ray_var.append(float(np.nanvar(d, ddof=1)) if np.isfinite(d).sum() > 1 else float("nan"))
+            comps[f"fwhm_{q}"] = _components(np.array(chosen[f"fwhm_{q}_each"]), np.array(ray_var))
+    out.update({
+        "fwhm_r_deg": chosen["fwhm_r_deg"], "fwhm_r_ci_deg": chosen["fwhm_r_ci_deg"], "fwhm_r_ray_ci_deg": ray_ci["r"],
+        "fwhm_l_deg": chosen["fwhm_l_deg"], "fwhm_l_ci_deg": chosen["fwhm_l_ci_deg"], "fwhm_l_ray_ci_deg": ray_ci["l"],
+        "haze": haze, "haze_each": [float(k / n) if n else float("nan") for k, n in zip(dev_k, dev_n)],
+        "fwhm": spec.to_dict(), "estimators": est_out,
+        "lorentz_ks_r": lorentz_ks(angles["r"].x), "lorentz_ks_l": lorentz_ks(angles["l"].x),
+        "components": comps, "realisations": n_real, "n_boot": int(n_boot),
+        "interval": INTERVAL_WOODS if n_real > 1 else INTERVAL_RAYS,
+    })
+    return out
+
+
+def _parts(results) -> list:
+    parts = []
+    for r in results:
+        t = r.transmitted
+        hz = deviates(r.exit_direction[t], (0.0, 1.0, 0.0) if r.incident is None else r.incident[t])
+        parts.append((r.theta_r[t], r.theta_l[t], hz))
+    return parts
+
+
+def pool(results: list, *, spec: FwhmSpec = FwhmSpec(), n_boot: int = N_BOOT, seed: int = 0,
+         level: float = LEVEL) -> dict:
+    """:func:`reduce_angles` of the transmitted rays of several wood realisations (RayResults,
+    realisation 0 first), with their ray counts."""
+    out = reduce_angles(_parts(results), spec=spec, n_boot=n_boot, seed=seed, level=level)
+    counts = [r.counts()["transmitted"] for r in results]
+    n_rays = int(sum(r.status.size for r in results))
+    out.update({"n_rays": n_rays, "n_transmitted": int(sum(counts)), "n_lost": int(n_rays - sum(counts)),
+                "interfaces_per_ray": float(np.mean(np.concatenate([r.events for r in results])))})
+    return out
+
+
+def summarize(result, *, spec: FwhmSpec = FwhmSpec(), n_boot: int = N_BOOT, seed: int = 0) -> dict:
+    """FWHM_R, FWHM_L (every estimator, intervals over the rays), haze and the counts of one
+    RayResult."""
+    out = pool([result], spec=spec, n_boot=n_boot, seed=seed)
+    out.update({
+        "counts": result.counts(),
+        "voxels_read": voxels_read(result),
+        "degenerate_normals": int(result.fallbacks[:, 0].sum()),
+        "face_disagreements": int(result.fallbacks[:, 1].sum()),
+        # Normals taken at the face point: walls thinner than the smoothing.
+        "thin_wall_normals": int(result.fallbacks[:, 2].sum()),
+        "method": result.settings.method,
+        "exit": result.settings.exit,
+    })
+    return out
