@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .analysis import HAZE_ANGLE_DEG, fwhm, image_quality
+from .summary import N_BOOT, percentile_interval, t_interval
 from .figures import TABLE1, open_dataset, value_label
 from .microstructure.model import tip_wall_angle_deg
 from .optics.interface import TRANSMITTED
@@ -26,8 +27,6 @@ from .params import WoodParams
 # The value of each study that the others are compared with: the Table 1 default scene
 # (docs/methods.md#table-1) where the study contains it, else its first value.
 REFERENCE = {"thickness": 1.0, "delta_ri": 0.01}
-
-N_BOOT = 200
 
 LEVEL = 0.95
 
@@ -65,6 +64,37 @@ def reduce_rays(theta_r, theta_l, ok, idx) -> np.ndarray:
     sel_l = np.concatenate([theta_l[r][i[ok[r][i]]] for r, i in idx])
     return np.array([fwhm(sel_r), fwhm(sel_l), _haze_of(sel_r, sel_l)])
 
+def resample(rng: np.random.Generator, n_real: int, n_rays: int) -> list:
+    """One bootstrap draw of (realisation, ray indices) pairs: with several woods, woods drawn
+    with replacement, each with all its rays (docs/methods.md#realisations-and-intervals); with one,
+    its rays drawn with replacement."""
+    if n_real > 1:
+        every = np.arange(n_rays)
+        return [(int(r), every) for r in rng.integers(0, n_real, n_real)]
+    return [(0, rng.integers(0, n_rays, n_rays))]
+
+
+def interval(point: float, draws: np.ndarray, n_real: int) -> tuple[float, float]:
+    """The 95 % interval of a change from its bootstrap ``draws``: Student t on the woods'
+    standard error with several woods, the percentile interval over rays with one."""
+    lo, hi = t_interval(float(point), np.asarray(draws, dtype=float), n_real, LEVEL) if n_real > 1 else \
+        percentile_interval(np.asarray(draws, dtype=float), LEVEL)
+    return float(lo), float(hi)
+
+
+def p_value(effect: "Effect", draws_se: float | None = None) -> float:
+    """Two-sided p-value of an effect against no change, from its interval (t on woods − 1 d.o.f.,
+    the interval's half-width being t · SE); NaN for an interval over rays alone."""
+    from scipy.stats import t as student_t
+
+    lo, hi = effect.ci
+    if effect.woods < 2 or not hi > lo:
+        return float("nan")
+    q = float(student_t.ppf(0.5 + LEVEL / 2, effect.woods - 1))
+    se = (hi - lo) / (2 * q)
+    return float(2 * student_t.sf(abs(effect.change) / se, effect.woods - 1))
+
+
 def paired_change(ref, other, *, n_boot: int = N_BOOT, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """``other`` against ``ref``, two traces of the same rays (each (theta_r, theta_l, transmitted),
     1-D over the rays, ray i the same entry point in both): the change of FWHM_R and FWHM_L (% of
@@ -80,8 +110,7 @@ def paired_change(ref, other, *, n_boot: int = N_BOOT, seed: int = 0) -> tuple[n
 
     point = change(np.arange(n))
     boots = np.array([change(rng.integers(0, n, n)) for _ in range(n_boot)])
-    a = (1.0 - LEVEL) / 2.0
-    return point, np.quantile(boots, [a, 1.0 - a], axis=0).T
+    return point, np.array([percentile_interval(boots[:, j], LEVEL) for j in range(3)])
 
 
 def per_ray(ds, name: str) -> np.ndarray:
@@ -100,6 +129,7 @@ class Effect:
     quantity: str  # FWHM_R, FWHM_L or haze
     change: float  # % of the reference for FWHM, points for haze
     ci: tuple[float, float]
+    woods: int = 1  # the woods the interval resampled (Student t on woods - 1 d.o.f.)
 
     @property
     def resolved(self) -> bool:
@@ -128,11 +158,9 @@ def effects(name: str, ds, *, n_boot: int = N_BOOT, seed: int = 0) -> list[Effec
     rng = np.random.default_rng(seed)
     boots = np.empty((n_boot, n_values, 3))
     for b in range(n_boot):
-        picks = rng.integers(0, n_real, n_real) if n_real > 1 else np.zeros(1, np.int64)
-        idx = [(r, rng.integers(0, n_rays, n_rays)) for r in picks]
+        idx = resample(rng, n_real, n_rays)
         boots[b] = [reduce_rays(tr[k], tl[k], ok[k], idx) for k in range(n_values)]
     ref = reference_index(ds)
-    a = (1.0 - LEVEL) / 2.0
     out = []
     for k in range(n_values):
         if k == ref:
@@ -144,8 +172,7 @@ def effects(name: str, ds, *, n_boot: int = N_BOOT, seed: int = 0) -> list[Effec
                 diff = 100 * (point[k, q] / point[ref, q] - 1)
                 dist = 100 * (boots[:, k, q] / boots[:, ref, q] - 1)
             out.append(Effect(name, dim, value_label(ds[dim].values[k]), value_label(ds[dim].values[ref]),
-                              quantity, float(diff),
-                              (float(np.quantile(dist, a)), float(np.quantile(dist, 1 - a)))))
+                              quantity, float(diff), interval(diff, dist, n_real), n_real))
     return out
 
 def all_effects_of(tables: dict, *, n_boot: int = N_BOOT) -> dict:
@@ -206,7 +233,6 @@ def method_rows(tables: dict, other: dict, *, n_boot: int = N_BOOT, seed: int = 
     ``<q>_other`` (each method pooled over those common rays), ``<q>_change``; ``ref`` and ``other``
     are the methods' names."""
     rng = np.random.default_rng(seed)
-    a = (1.0 - LEVEL) / 2.0
     rows = []
     for name, acc in tables.items():
         pap = other[name]
@@ -220,8 +246,7 @@ def method_rows(tables: dict, other: dict, *, n_boot: int = N_BOOT, seed: int = 
             point = [reduce_rays(c[0], c[1], c[2] == TRANSMITTED, every) for c in cut]
             boots = []
             for _ in range(n_boot):
-                picks = rng.integers(0, n_real, n_real) if n_real > 1 else np.zeros(1, np.int64)
-                idx = [(r, rng.integers(0, n, n)) for r in picks]
+                idx = resample(rng, n_real, n)
                 pa, pp = (reduce_rays(c[0], c[1], c[2] == TRANSMITTED, idx) for c in cut)
                 boots.append([100 * (pp[0] / pa[0] - 1), 100 * (pp[1] / pa[1] - 1), 100 * (pp[2] - pa[2])])
             boots = np.array(boots)
@@ -233,7 +258,7 @@ def method_rows(tables: dict, other: dict, *, n_boot: int = N_BOOT, seed: int = 
                 # Both methods on the rays both traced (a study may have more woods or rays than the other).
                 **{f"{q}_{m}": float(point[i][j]) * (100 if q == "haze" else 1)
                    for j, q in enumerate(("FWHM_R", "FWHM_L", "haze")) for i, m in enumerate(("ref", "other"))},
-                **{f"{q}_change": (diff[j], (float(np.quantile(boots[:, j], a)), float(np.quantile(boots[:, j], 1 - a))))
+                **{f"{q}_change": (diff[j], interval(diff[j], boots[:, j], n_real))
                    for j, q in enumerate(("FWHM_R", "FWHM_L", "haze"))},
                 "rays_other": pap.sizes["ray"], "rays_common": n, "realisations_common": n_real,
             })

@@ -323,14 +323,20 @@ def plot_histograms(ds, thicknesses, path: Path) -> Path:
                     color="#9bb7d4", edgecolor="none", label=f"{theta.size} rays ({outside} beyond the axis)")
             grid = np.linspace(bins[0], bins[-1], 400)
             ax.plot(grid, gamma / (math.pi * ((grid - loc) ** 2 + gamma ** 2)), color="#b03030", lw=1.2,
-                    label=f"Lorentz fit, FWHM {float(one[fw]):.2f}°")
+                    label=f"Lorentz maximum-likelihood fit, 2γ {2 * gamma:.2f}°")
+            if f"{fw}_half_max" in one:  # the distribution's own width at half its maximum (Table 1's FWHM)
+                counts, _ = np.histogram(theta, bins=bins)
+                peak = counts.max() / (theta.size * width)
+                half = float(one[f"{fw}_half_max"])
+                ax.hlines(peak / 2, loc - half / 2, loc + half / 2, color="#202020", lw=1.2,
+                          label=f"width at half maximum {half:.2f}°")
             name = "θ_R" if var == "theta_r" else "θ_L"
             ax.set_xlabel(f"{name} (°)", fontsize=8)
             ax.set_ylabel("density (1/°)", fontsize=8)
             ax.set_title(f"{th:g} mm: {name}", fontsize=8)
             ax.legend(fontsize=6, frameon=False, loc="upper left")
             ax.tick_params(labelsize=7)
-    fig.suptitle(f"Exit angles and their Lorentz fits ({ds.attrs['title']})", fontsize=9)
+    fig.suptitle(f"Exit angles, their width at half maximum and Lorentz fits ({ds.attrs['title']})", fontsize=9)
     fig.tight_layout()
     return _save(fig, path)
 

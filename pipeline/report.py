@@ -20,10 +20,12 @@ from .effects import (N_BOOT, TABLE1, TRADEOFF_TARGETS, Effect, all_effects_of, 
                       experiment_rows, fibre_tip_rows, fine_voxel_rows, load_table1, method_rows, reference_index,
                       setting_label, study_dimension, table1_rows)
 from .design import MAPS, window_table
+from .effects import p_value
 from .figures import open_dataset, table1_structures, traced_voxel, value_label
 from .report_tables import (balsa_reading_sentence, effects_markdown, experiment_markdown, fibre_tip_markdown,
                             fibre_tip_sentence, method_markdown, method_summary, table1_markdown, variation_markdown,
                             woods_text)
+from .report_source import source_sections
 
 # What geometrical optics leads one to expect of each study, before running it; the
 # report states whether twray's numbers agree.  (The published study's own values are
@@ -202,20 +204,22 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add("## Table 1")
     add("")
-    add(f"Each number is its study's wood realisations pooled (the woods column): the Lorentz fit (FWHM = 2γ) to "
-        f"all their transmitted rays, and haze the share of them deviating more than {HAZE_ANGLE_DEG:g}°. "
-        "Intervals are 95 %, from a hierarchical bootstrap (woods drawn with replacement, then rays within each "
-        "drawn wood), so they hold the variation from one wood to the next as well as the sampling of rays. The "
+    add(f"Each number is its study's wood realisations pooled (the woods column): FWHM the width of the angle "
+        f"distribution at half its maximum (`{s1.attrs.get('fwhm_estimator', 'half-max')}`, the source's definition; "
+        "docs/methods.md#fwhm-and-haze), and haze the share of the transmitted rays deviating more than "
+        f"{HAZE_ANGLE_DEG:g}°. Intervals are 95 %, from resampling the woods (each drawn wood with all its rays; "
+        "Student t on woods − 1 degrees of freedom), so they hold the variation from one wood to the next and "
+        "the sampling of rays, each once. They are intervals against sampling noise only: the estimator, the method "
+        "and the wood model are systematic choices, measured in their own sections below. The "
         "last column is the range of the woods' own FWHM_R."
-        + (" The base scene (1 mm, ΔRI 0.01) is a value of several studies; each pools it over its own woods, so "
-           "its rows differ, within their intervals." if len(set(woods.values())) > 1 else ""))
+        + (" " + base_scene_sentence(rows) if len(set(woods.values())) > 1 else ""))
     add("")
     L.extend(table1_markdown(rows))
     add("")
     for name in TABLE1:
         add(f"![{tables[name].attrs['title']}]({fig}/{name}.png)")
         add("")
-    add("Exit-angle distributions and their Lorentz fits (the paper's Figure S1):")
+    add("Exit-angle distributions, their half-maximum widths and Lorentz fits (the paper's Figure S1):")
     add("")
     add(f"![angle histograms]({fig}/histograms.png)")
     add("")
@@ -230,12 +234,14 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("## The trends")
     add("")
     add("Each value against the study's reference value (the Table 1 default where the study has it). "
-        "FWHM changes are relative (%), haze changes in points. Intervals: paired hierarchical bootstrap "
-        f"({n_boot} resamples): the same woods and the same rays are drawn for every value (each value is "
+        "FWHM changes are relative (%), haze changes in points. Intervals: paired, from resampling woods "
+        f"({n_boot} resamples, Student t): the same woods are drawn for every value (each value is "
         "traced on the same woods with the same beam), so the interval is that of the difference, wood-to-wood "
         "variation included. \"Not resolved\": the interval contains 0.")
     add("")
     L.extend(effects_markdown(all_effects))
+    add("")
+    add(multiple_comparisons_sentence(all_effects))
     add("")
     add("| study | what optics leads one to expect | why | what twray finds |")
     add("|---|---|---|---|")
@@ -263,6 +269,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         add("")
         add(method_summary(voxel_rows))
         add("")
+    L.extend(source_sections(results, base, tables, methods))
     add(f"## The paper's method beside `{settings['method']}`")
     add("")
     add(f"Table 1 traced again with the paper's method (`--method paper`: 2-voxel steps, the crossing at the "
@@ -424,8 +431,10 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         add("- **Resolution.** The paper's 0.5 µm voxel puts 4 voxels across a 2 µm wall; the smoothed normal "
             "needs about 2.7 voxels of wall to see both faces, so `accurate` traces 0.25 µm voxels of the same "
             "wood (the model is a function of position).")
-    add("- **Statistics.** Every number carries a 95 % interval over woods and rays; the trends above are "
-        "paired differences with their own intervals. The paper reports single values.")
+    add("- **Statistics.** Every number of Table 1, the trends, the methods and the measured samples carries a 95 % "
+        "interval over woods and rays (the camera's contrast and RMS error do not: one wood, one image); the "
+        "trends are paired differences with their own intervals. The intervals are against sampling noise; the "
+        "estimator, method and geometry are systematic and measured separately. The paper reports single values.")
     add("- **Wood.** The microstructure model follows docs/methods.md#the-microstructure-model; every value is "
         + (f"{min(woods.values())}" if min(woods.values()) == max(woods.values())
            else f"{min(woods.values())}-{max(woods.values())}")
@@ -489,8 +498,43 @@ def fine_voxel_sentence(rows: list[dict]) -> str:
             + "; ".join(parts) + ". FWHM_L still falls as the voxel shrinks, so `accurate`'s values (0.25 µm) are "
             "upper bounds; a change between two values is measured on one voxel, but its size may shrink with it "
             "too." + ("" if not gaps else " `exact` on the same wood and rays lies within "
-                      f"{max(abs(g) for g in gaps):.0f} % of each zero-voxel extrapolation, which the voxels reach "
-                      "by a tracer that shares none of its code."))
+                      f"{max(abs(g) for g in gaps):.0f} % of each zero-voxel extrapolation; the two tracers share "
+                      "only the interface physics (Snell's law, total reflection), which only a tracer from outside "
+                      "the project would test."))
+
+def base_scene_sentence(rows: list[dict]) -> str:
+    """The base scene (1 mm, ΔRI 0.01) as pooled by each study that holds it, and whether the rows agree."""
+    base = [r for r in rows if r["value"] in ("1", "1.0", "0.01") and r["study"] in ("study-1", "study-2")]
+    if len(base) < 2:
+        return ""
+    parts = ", ".join(f"{r['study']} {r['FWHM_R']:.2f}° [{r['FWHM_R_ci'][0]:.2f}, {r['FWHM_R_ci'][1]:.2f}]" for r in base)
+    apart = [a["study"] + "/" + b["study"] for i, a in enumerate(base) for b in base[i + 1:]
+             if not (a["FWHM_R_ci"][0] <= b["FWHM_R"] <= a["FWHM_R_ci"][1]
+                     and b["FWHM_R_ci"][0] <= a["FWHM_R"] <= b["FWHM_R_ci"][1])]
+    return ("The base scene (1 mm, ΔRI 0.01) is a value of several studies, each pooled over its own woods (the "
+            f"first woods shared): FWHM_R {parts}; "
+            + ("each lies inside the others' intervals." if not apart else
+               f"{', '.join(apart)} lie outside each other's intervals, as two samples of overlapping woods may "
+               "one time in several at 95 %."))
+
+
+def multiple_comparisons_sentence(all_effects: dict) -> str:
+    """How many effects are resolved, how many 5 % would be by chance, and how many survive Holm's correction."""
+    effs = [e for effs in all_effects.values() for e in effs]
+    ps = np.array([p_value(e) for e in effs])
+    ps = ps[np.isfinite(ps)]
+    n = ps.size
+    resolved = sum(1 for e in effs if e.resolved)
+    holm = 0
+    for i, p in enumerate(np.sort(ps)):
+        if p > 0.05 / (n - i):
+            break
+        holm += 1
+    return (f"**Multiple comparisons.** {n} changes are tested above; {resolved} are resolved at 95 %, against "
+            f"about {0.05 * n:.0f} that would be by chance if no change were real. {holm} stay resolved with Holm's "
+            f"correction for all {n} tests (family-wise error 5 %). \"Resolved\" means resolved against sampling "
+            "noise, not against the systematic choices of estimator, method and geometry.")
+
 
 def figure_links(markdown: str) -> list[str]:
     """The image paths a report links, relative to its folder."""

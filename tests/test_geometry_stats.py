@@ -80,8 +80,11 @@ def test_vessel_and_ray_detection():
     vol[50:110, 156:164, 2:6] = 0
     s = volume_statistics(vol, V)
     assert s["vessel_area_fraction"] == pytest.approx(vessel.sum() / vessel.size, rel=0.01)
+    wall_outside = vol.sum(axis=(0, 1)) / (vessel.size - vessel.sum())
+    assert s["wall_fraction_outside_vessels"] == pytest.approx(wall_outside.mean(), rel=0.01)
     assert s["ray_slice_share"] == pytest.approx(0.4)
     assert s["ray_lumens_per_slice"] == pytest.approx(0.4)
+    assert s["ray_lumen_t_um_median"] == pytest.approx(4.0)
     # The vessel and the ray lumen do not count as fibre lumens.
     assert s["fibre_lumen_d_um_median"] == pytest.approx(2 * math.sqrt(64 / math.pi))
 

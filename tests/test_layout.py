@@ -11,11 +11,13 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent / "pipeline"
 # Floors, bottom first: a module imports only its own floor and those below.
 FLOORS = [
     {"pipeline", "pipeline.versions", "pipeline.params", "pipeline.rng", "pipeline._intrinsics", "pipeline._kernel_cache",
-     "pipeline.cache", "pipeline.progress", "pipeline.analysis", "pipeline.provenance", "pipeline.publish", "pipeline.runlog"},
+     "pipeline.cache", "pipeline.progress", "pipeline.analysis", "pipeline.summary", "pipeline.geometry_stats",
+     "pipeline.provenance", "pipeline.publish", "pipeline.runlog"},
     {"pipeline.microstructure"},
     {"pipeline.optics"},
     {"pipeline.limits", "pipeline.study", "pipeline.camera"},
-    {"pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.report_tables", "pipeline.inventory",
+    {"pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.report_tables", "pipeline.report_source",
+     "pipeline.report_geometry", "pipeline.inventory",
      "pipeline.trace_job",
      "pipeline.cluster", "pipeline.design"},
     {"pipeline.cli", "pipeline.__main__"},

@@ -30,16 +30,16 @@ def rays(gamma_r_deg, n, seed, *, gamma_l_deg=0.5):
 
 
 def test_pooled_intervals_hold_the_wood_to_wood_variation():
-    """Woods that scatter differently (half-widths 1°, 2°, 3°): the hierarchical interval is
-    several times the ray-only one; woods that scatter alike: about the same."""
+    """Woods that scatter differently (half-widths 1°, 2°, 3°): the interval over woods is
+    several times the ray-only one; 8 woods that scatter alike: about the same (t on 7 d.o.f.)."""
     differ = pool([rays(g, 800, s) for s, g in enumerate((1.0, 2.0, 3.0))], n_boot=120, seed=1)
-    alike = pool([rays(2.0, 800, s) for s in range(3)], n_boot=120, seed=1)
+    alike = pool([rays(2.0, 800, s) for s in range(8)], n_boot=120, seed=1)
 
     def width(p, key):
         return p[key][1] - p[key][0]
 
     assert width(differ, "fwhm_r_ci_deg") > 3 * width(differ, "fwhm_r_ray_ci_deg")
-    assert width(alike, "fwhm_r_ci_deg") < 2 * width(alike, "fwhm_r_ray_ci_deg")
+    assert width(alike, "fwhm_r_ci_deg") < 1.6 * width(alike, "fwhm_r_ray_ci_deg")
     # The point estimate is the fit to every ray pooled, realisation 0 first.
     pooled = np.concatenate([r.theta_r for r in [rays(g, 800, s) for s, g in enumerate((1.0, 2.0, 3.0))]])
     assert differ["fwhm_r_deg"] == pytest.approx(fwhm(pooled), rel=1e-9)

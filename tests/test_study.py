@@ -20,6 +20,7 @@ from pipeline.cache import atomic_write as _atomic_write
 from pipeline.study.dataset import study_dataset, write_dataset
 from pipeline.study.graph import compute
 from pipeline.study.plan import plan_study, report_table
+from pipeline.study.summaries import resummarized
 from pipeline.study.spec import load_study
 
 TABLE1 = Path(__file__).resolve().parent.parent / "studies" / "table1"
@@ -305,6 +306,14 @@ def test_study_2_small_gives_six_finite_values_on_two_woods(tmp_path, client):
     # The per-ray angles are there for re-analysis and agree with the fits' inputs.
     t = ds.status.values == 1
     assert np.all(np.isfinite(ds.theta_r.values[t]))
+    # Every estimator is there, FWHM_R is the default's, and re-summarising the Dataset from its own
+    # rays (twray resummarize) gives the study's summaries bit for bit.
+    assert ds.attrs["fwhm_estimator"] == "half-max" and np.array_equal(ds.FWHM_R.values, ds.FWHM_R_half_max.values)
+    again, _ = resummarized(ds)
+    summary_vars = [v for v in again.data_vars if v not in ("theta_r", "theta_l", "status", "n_interfaces")]
+    assert len(summary_vars) > 50
+    for v in summary_vars:
+        np.testing.assert_array_equal(again[v].values, ds[v].values, err_msg=v)
 
 
 def test_unchanged_rerun_computes_nothing_and_a_new_value_traces_only_itself(tmp_path, capsys):
