@@ -129,6 +129,17 @@ def trace(npy: Path, voxel_um: float, method: str, args, log: list[str]) -> dict
     return res
 
 
+def finite(obj):
+    """The document with NaN and infinities as null, so that the JSON is standard."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    return obj
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--port", nargs="+", type=Path, required=True, help="the port's FinalVolume.nrrd files")
@@ -141,11 +152,15 @@ def main(argv=None) -> int:
     ap.add_argument("--beam-um", type=float, default=80.0, help="beam side [µm], centred on the R-L face")
     ap.add_argument("--trace-pythonpath", default=None,
                     help="PYTHONPATH for the trace commands (e.g. a checkout of a committed twray)")
+    ap.add_argument("--extra", nargs="*", type=Path, default=[],
+                    help="port volumes of another size: measured beside twray's birch of that size (one seed each)")
+    ap.add_argument("--port-meta", type=Path, default=None,
+                    help="JSON about how the port's volumes were made (commands, wall time, memory), copied in")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "geometry.json")
     args = ap.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
     log: list[str] = [shlex.join([sys.executable, *sys.argv])]
-    doc = json.loads(args.out.read_text()) if args.out.exists() else {}
+    doc: dict = {}
 
     port_vols, port_runs = [], []
     for p in args.port:
@@ -172,6 +187,7 @@ def main(argv=None) -> int:
         "description": "twray birch vs the source generator's Python port (AITW_microstructures), "
                        "measured with pipeline.geometry_stats.volume_statistics",
         "port": {"runs": port_runs, "voxel_um": args.port_voxel_um, "size_um": size_um,
+                 "generation": json.loads(args.port_meta.read_text()) if args.port_meta else None,
                  "seeds": [r["params"].get("random_seed") if r["params"] else None for r in port_runs],
                  "per_seed": port_stats, "stats": summarise(port_stats)},
         "twray": {"preset": "birch", "voxel_um": args.twray_voxel_um, "size_um": size_um, "seeds": seeds,
@@ -179,6 +195,18 @@ def main(argv=None) -> int:
         "ray_detector_validation": ray_checks,
         "commands": log,
     })
+    checks = []
+    for p in args.extra:
+        raw = read_nrrd(p)
+        params = p.parent.parent / "params.json"
+        seed = json.loads(params.read_text()).get("random_seed", 1) if params.exists() else 1
+        size = [n * args.port_voxel_um for n in raw.shape]
+        v = twray_volume(seed, size, args.twray_voxel_um, args.workdir, log)
+        checks.append({"nrrd": str(p), "size_um": size, "seed": seed,
+                       "port": volume_statistics((raw >= 128).astype(np.uint8), args.port_voxel_um),
+                       "twray": volume_statistics(v, args.twray_voxel_um)})
+    if checks:
+        doc["size_check"] = checks
     if args.trace:
         tr = {"delta_ri": 0.01, "rays": args.rays, "beam_um": args.beam_um, "voxel_um": args.port_voxel_um,
               "thickness_um": size_um[1], "runs": []}
@@ -203,7 +231,7 @@ def main(argv=None) -> int:
         doc["trace"] = tr
         doc["commands"] = log
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=2) + "\n")
+    args.out.write_text(json.dumps(finite(doc), indent=2) + "\n")
     print(f"wrote {args.out}")
     return 0
 

@@ -26,7 +26,7 @@ def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
         return med, 0.0
     iqr = float(np.subtract(*np.percentile(x, [75, 25])))
     scale0 = max(iqr / 2.0, 1e-9)
-    newton = _cauchy_newton(x, med, math.log(scale0))
+    newton = cauchy_newton(x, med, math.log(scale0))
     if newton is not None:
         return newton
 
@@ -41,7 +41,7 @@ def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
     return float(res.x[0]), float(np.exp(res.x[1]))
 
 
-def _cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 100):
+def cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 100):
     """Newton's method with a backtracking line search on the Cauchy log-likelihood in
     (θ0, log γ), from (``loc``, ``log_g``); None when it does not converge (the caller then
     uses Nelder-Mead).  About twenty times faster than Nelder-Mead, to the same optimum."""

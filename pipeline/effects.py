@@ -216,6 +216,9 @@ def table1_rows(tables: dict) -> list[dict]:
                 "haze_each": 100 * _each(one, "haze"),
                 "FWHM_R_ray_ci": (float(one["FWHM_R_ray_ci_lower"]), float(one["FWHM_R_ray_ci_upper"]))
                 if "FWHM_R_ray_ci_lower" in one else (float(one["FWHM_R_ci_lower"]), float(one["FWHM_R_ci_upper"])),
+                # Variance components: (SD between woods, SD of one wood's value from its rays).
+                "components": {q: (float(one[f"{q}_sd_between_woods"]), float(one[f"{q}_sd_rays_per_wood"]))
+                               for q in ("FWHM_R", "haze") if f"{q}_sd_between_woods" in one},
             })
     return rows
 

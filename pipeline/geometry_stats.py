@@ -128,6 +128,9 @@ def volume_statistics(volume: np.ndarray, voxel_um: float, *, sigma_vox: float =
       equivalent diameter d = 2 sqrt(A/π); regions with d < 2 µm are specks and
       ignored.  *Vessels* are lumens with d > 30 µm (``VESSEL_DIAMETER_UM``),
       *ray-cell lumens* those of :func:`is_ray_like`, *fibre lumens* the rest.
+    * ``wall_fraction_outside_vessels``: wall voxels over the voxels that are not
+      vessel lumen (vessels as below, edge-cut ones included): the fibre tissue's
+      wall fraction, which a sample's chance share of vessels does not move.
     * ``fibre_lumen_d_um_{median,q25,q75}``: quartiles of d over the fibre lumens
       of all slices that touch no slice edge (cut lumens would bias d low).
     * ``vessel_area_fraction``: area of vessel lumens (edge-touching ones
@@ -144,6 +147,9 @@ def volume_statistics(volume: np.ndarray, voxel_um: float, *, sigma_vox: float =
       of |n_L| at the wall-surface voxels (:func:`wall_normals_l`; σ = ``sigma_vox``).
     * ``ray_slice_share``: share of L slices with at least one ray-cell lumen
       (elongated along R: R extent ≥ 2 × T extent and ≥ 12 µm; not cut by a T edge).
+      A slice through the end walls between two ray cells along L, or through a
+      solid band of ray tissue, does not count.
+    * ``ray_lumen_t_um_median``: median T extent of those ray-cell lumens.
     * ``slice_wall_fraction_{median,max}``: statistics of the per-slice wall fraction.
 
     Parameters
@@ -168,7 +174,7 @@ def volume_statistics(volume: np.ndarray, voxel_um: float, *, sigma_vox: float =
     v = float(voxel_um)
     out: dict = {"shape": [nr, nt, nl], "voxel_um": v, "wall_fraction": float(wall.mean())}
 
-    fibre_d, vessel_frac, ray_slices, n_ray_lumens = [], [], 0, 0
+    fibre_d, vessel_frac, ray_t, ray_slices, n_ray_lumens = [], [], [], 0, 0
     for k in range(nl):
         tab = lumen_table(wall[:, :, k], v)
         big = tab["d_um"] >= MIN_LUMEN_DIAMETER_UM
@@ -177,6 +183,7 @@ def volume_statistics(volume: np.ndarray, voxel_um: float, *, sigma_vox: float =
         fibre = big & ~vessel & ~ray & ~tab["border"]
         fibre_d.append(tab["d_um"][fibre])
         vessel_frac.append(tab["area_um2"][vessel].sum() / (nr * nt * v * v))
+        ray_t.append(tab["len_t_um"][ray])
         ray_slices += bool(ray.any())
         n_ray_lumens += int(ray.sum())
     d = np.concatenate(fibre_d) if fibre_d else np.zeros(0)
@@ -184,7 +191,10 @@ def volume_statistics(volume: np.ndarray, voxel_um: float, *, sigma_vox: float =
     out.update({"fibre_lumen_d_um_q25": q[0], "fibre_lumen_d_um_median": q[1],
                 "fibre_lumen_d_um_q75": q[2], "fibre_lumens_counted": int(d.size),
                 "vessel_area_fraction": float(np.mean(vessel_frac)),
-                "ray_slice_share": ray_slices / nl, "ray_lumens_per_slice": n_ray_lumens / nl})
+                "wall_fraction_outside_vessels": out["wall_fraction"] / (1.0 - float(np.mean(vessel_frac)))
+                if np.mean(vessel_frac) < 1.0 else float("nan"),
+                "ray_slice_share": ray_slices / nl, "ray_lumens_per_slice": n_ray_lumens / nl,
+                "ray_lumen_t_um_median": _quartiles(np.concatenate(ray_t))[1]})
 
     runs = {}
     for name, axis in (("r", 0), ("t", 1)):

@@ -65,10 +65,12 @@ def _about(stage: str, path: Path) -> str:
         return (f"rays {lo}-{hi} of wood {str(record.get('micro'))[:8]}, {s.get('method')}, "
                 f"n_wall {record.get('n_wall')}, {record.get('thickness_vox')} voxels thick, "
                 f"tracer {record.get('tracer')}")
+    fw = record.get("fwhm", {}).get("estimator", "lorentz-mle")  # before summary 5 / pool 2 FWHM was the Lorentz 2γ
     if stage == "summary":
-        return f"summary of {len(record.get('rays', []))} ray shards, {record.get('n_boot')} bootstrap draws"
+        return f"summary of {len(record.get('rays', []))} ray shards, FWHM {fw}"
     if stage == "pool":
-        return f"{len(record.get('summaries', []))} wood realisations pooled, {record.get('n_boot')} bootstrap draws"
+        return (f"{len(record.get('summaries', []))} wood realisations pooled, FWHM {fw}, "
+                f"{record.get('n_boot')} bootstrap draws")
     if stage == "camera":
         cam = record.get("camera", {})
         return f"image {cam.get('pixels')} px, {'with' if record.get('sheet') else 'without'} sheet, " \

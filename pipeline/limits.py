@@ -59,13 +59,16 @@ REGION_CPU_S_PER_BYTE = 1.7e-8  # exact: building a trace's regions (1.5 mm of b
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
 # What a study writes besides its wood (measured by tests/test_limits.py): per shard of rays an .npz
 # (headers and its record, then 120 B a ray), per wood and value a summary and per value a pool
-# (JSON, under 1 kB each), per study a Dataset (75 kB of metadata and numbers, then per ray
+# (JSON, about 2 kB each: every estimator), per study a Dataset (150 kB of metadata and numbers, then per ray
 # DATASET_RAY_BYTES; Table 1's compress to 17 B a ray).
-SHARD_BYTES, SHARD_RAY_BYTES, ENTRY_BYTES, DATASET_BYTES = 7e3, 120.0, 800.0, 75e3
+SHARD_BYTES, SHARD_RAY_BYTES, ENTRY_BYTES, DATASET_BYTES = 7e3, 120.0, 2.2e3, 150e3
 # ... and what its reductions cost: per scene (value and wood) its summary, its share of the value's
 # pool and the tasks' overhead; per study its Dataset (xarray, Zarr).  Fitted with the startups to a
 # small `exact` study (4 scenes, 5.9 CPU-s in all) and Table 1's study 2 at --scale quick (30, 20.8).
 SCENE_CPU_S, DATASET_CPU_S = 0.3, 0.5
+# A value's pool: every estimator on 2000 resamples of its woods (and of its rays), about linear in
+# the rays pooled (benchmarks/bench_pool.py: 2.0 CPU-s for 3 woods × 200 rays, 11.5 for 40 × 1000).
+POOL_CPU_S, POOL_CPU_S_PER_RAY = 2.0, 2.4e-4
 SPREAD = 1.25  # chunks generated around the beam's column by spreading rays, as a factor
 CHUNK = 64  # voxels along a chunk edge in the study cache
 SHOW_ESTIMATE_S = 60.0  # commands estimated above this many CPU-seconds print their estimate first
@@ -173,6 +176,12 @@ def stored_bytes(voxels: float, voxel_um: float, wood=None) -> float:
     return voxels * DISK_BYTES_PER_VOXEL * factor * math.sqrt(voxel_um / 0.5)
 
 
+def summary_estimate(rays: int) -> Estimate:
+    """Reducing ``rays`` traced rays to every estimator's widths and haze with their intervals (a
+    value's pool, or a trace's summary: about the same work)."""
+    return Estimate(POOL_CPU_S + rays * POOL_CPU_S_PER_RAY, 0.0, 0.0)
+
+
 def startup(processes: int, *, kernels: bool = True) -> Estimate:
     """What ``processes`` processes running twray cost before any work (the command and its workers;
     ``kernels``: they load the generator's and tracers' compiled kernels)."""
@@ -243,8 +252,10 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))
         written = n_shards * SHARD_BYTES + s.rays * (SHARD_RAY_BYTES + DATASET_RAY_BYTES) + 2 * ENTRY_BYTES
-        est = est + Estimate(shard.cpu_s * n_shards - again + SCENE_CPU_S, max(shard.memory, reduce), written)
-    est = est + Estimate(sum(regions.values()), 0.0, 0.0)
+        est = est + Estimate(shard.cpu_s * n_shards - again + SCENE_CPU_S + s.rays * POOL_CPU_S_PER_RAY,
+                             max(shard.memory, reduce), written)
+    pools = sum(1 for s in scenes if s.realisation == 0)  # one pool a value, over its woods
+    est = est + Estimate(sum(regions.values()) + POOL_CPU_S * pools, 0.0, 0.0)
     return est + _woods(woods) + (Estimate(DATASET_CPU_S, 0.0, DATASET_BYTES) if scenes else Estimate())
 
 

@@ -28,8 +28,8 @@ from .report_tables import (balsa_reading_sentence, effects_markdown, experiment
 from .report_source import source_sections
 
 # What geometrical optics leads one to expect of each study, before running it; the
-# report states whether twray's numbers agree.  (The published study's own values are
-# not part of this repository's specification, so they are not compared here.)
+# report states whether twray's numbers agree.  (The source's own numbers are compared in
+# "Against the source", pipeline/report_source.py.)
 EXPECTED = {
     "study-1": ("widths and haze grow with thickness, the widths as √N of the interfaces N",
                 "each interface adds a small deflection of either sign: a random walk of N steps spreads "
@@ -178,7 +178,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("")
     add(f"Table 1 was traced with twray {s1.attrs['twray_version']} (tracer version {s1.attrs['tracer_version']}, "
         f"generator version {s1.attrs['generator_version']}) at scale `{s1.attrs['scale']}`: "
-        f"{s1.attrs['rays']} rays per value on each of {woods_text(woods, target, first_seed)}, "
+        f"{s1.attrs['rays']} rays per value on each of {woods_text(woods, target, first_seed)}{target_status(tables)}, "
         f"method `{settings['method']}` "
         + (f"(wood traced on {traced_voxel(json.loads(s1.attrs['scenes'])[0]):g} µm voxels), "
            if settings["method"] != "exact" else "(the model's own surfaces, no voxels), ")
@@ -226,8 +226,10 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("## Wood-to-wood variation")
     add("")
     add("One wood realisation is one sample. How much each value moves between its study's woods "
-        "(coefficient of variation of the woods' own values; haze as a standard deviation in points), and "
-        "how much wider its FWHM_R interval is once the woods are in it:")
+        "(coefficient of variation of the woods' own values; haze as a standard deviation in points), how much of "
+        "that is the woods and how much the 1000 rays of each (variance components: the woods' variance minus "
+        "the ray variance of one wood's value, docs/methods.md#realisations-and-intervals), and how much wider "
+        "its FWHM_R interval is once the woods are in it:")
     add("")
     L.extend(variation_markdown(rows))
     add("")
@@ -250,9 +252,8 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         cells = (name, exp, why, _agreement(name, all_effects[name], tables))
         add("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     add("")
-    add("The published study's own Table 1 values are not part of this repository's specification "
-        "(docs/methods.md#table-1 gives the studies, not their results), so the comparison above is with what "
-        "geometrical optics predicts, not with the paper's numbers.")
+    add("The comparison above is with what geometrical optics predicts; the source's own published numbers "
+        "(docs/methods.md#the-source-s-published-numbers) are compared in \"Against the source\" below.")
     add("")
     if voxel_rows:
         v1 = voxel_tables["study-1"]
@@ -263,7 +264,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
             f"beside the same values traced with `{voxel_rows[0]['ref']}` on the same "
             f"{voxel_rows[0]['realisations_common']} woods (the first of Table 1's) with the same "
             f"{voxel_rows[0]['rays_common']} rays each, both pooled over those rays: the paired difference is the "
-            "voxel method's error on each Table 1 scene, hierarchical bootstrap 95 % intervals.")
+            "voxel method's error on each Table 1 scene, 95 % intervals from resampling the woods (paired, Student t).")
         add("")
         L.extend(method_markdown(voxel_rows))
         add("")
@@ -277,7 +278,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         f"of the first {p1.sizes.get('realisation', 1)} of Table 1's woods (`results/{scale_dir}/paper-method/`). "
         "Both methods are pooled over the rays both traced, and the differences are paired: the same woods and the "
         "same rays (ray i of a beam enters at the same point "
-        f"whatever the total), {methods[0]['rays_common']} per wood, hierarchical bootstrap 95 % intervals. "
+        f"whatever the total), {methods[0]['rays_common']} per wood, 95 % intervals from resampling the woods (paired, Student t). "
         f"A difference here comes from the method alone; one between `{settings['method']}` and the published numbers that "
         "is not here comes from the wood model or the statistics.")
     add("")
@@ -300,8 +301,8 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     if radius.exists():
         add(balsa_reading_sentence(open_dataset(radius), open_dataset(base / "experiment" / "balsa-1mm.zarr")))
         add("")
-    add("The measured hazes themselves are not part of this repository's specification, so they are not "
-        "compared here; the table gives what a hazemeter would read on these model woods.")
+    add("The table gives what a hazemeter would read on these model woods; the source's measured hazes are set "
+        "beside them in \"Against the source\" above.")
     add("")
     add("## Fibre tips and scattering along L")
     add("")
@@ -312,7 +313,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         "to L by atan(w/λ), w the lumen's half-width (docs/methods.md, \"Fibre tips\"). The Table 1 default wood "
         "(birch, 1 mm, ΔRI 0.01) with and without ray cells, over λ (`make fibre-tips`; "
         f"{tips[0]['realisations']} woods × {tips[0]['rays']} rays, the same woods as Table 1; changes are paired "
-        "against flat ends, hierarchical bootstrap 95 % intervals):")
+        "against flat ends, 95 % intervals from resampling the woods):")
     add("")
     L.extend(fibre_tip_markdown(tips))
     add("")
@@ -501,6 +502,28 @@ def fine_voxel_sentence(rows: list[dict]) -> str:
                       f"{max(abs(g) for g in gaps):.0f} % of each zero-voxel extrapolation; the two tracers share "
                       "only the interface physics (Snell's law, total reflection), which only a tracer from outside "
                       "the project would test."))
+
+def target_status(tables: dict) -> str:
+    """Which studies meet their target with today's estimator and intervals (the woods were chosen under
+    the Lorentz maximum-likelihood width and a nested interval, pool version 1), and how many woods the
+    interval's 1/√woods scaling says would meet it."""
+    unmet, need = [], []
+    for name, ds in tables.items():
+        if "target_ci_met" not in ds.attrs or int(ds.attrs["target_ci_met"]):
+            continue
+        unmet.append(name)
+        t = json.loads(ds.attrs["target_ci"])
+        ratios = [((ds.haze_ci_upper - ds.haze_ci_lower).values / 2 / t["haze"]).max()] if t.get("haze") else []
+        if t.get("fwhm_r_rel"):
+            ratios.append(((ds.FWHM_R_ci_upper - ds.FWHM_R_ci_lower).values / 2 / (t["fwhm_r_rel"] * ds.FWHM_R.values)).max())
+        need.append(math.ceil(ds.sizes.get("realisation", 1) * max(ratios) ** 2))
+    if not unmet:
+        return ""
+    cap = json.loads(tables[unmet[0]].attrs["target_ci"]).get("max_realisations")
+    return (f" (chosen for the Lorentz maximum-likelihood FWHM_R; with today's `half-max` FWHM_R, noisier, and "
+            f"intervals over woods, {', '.join(unmet)} no longer meet that target: by the interval's 1/√woods "
+            f"scaling they would need {min(need)}-{max(need)} woods, against the files' cap of {cap})")
+
 
 def base_scene_sentence(rows: list[dict]) -> str:
     """The base scene (1 mm, ΔRI 0.01) as pooled by each study that holds it, and whether the rows agree."""

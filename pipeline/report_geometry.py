@@ -13,6 +13,7 @@ from pathlib import Path
 # (key in geometry.json, label, unit, scale applied to the stored value)
 ROWS = [
     ("wall_fraction", "wall fraction", "%", 100.0),
+    ("wall_fraction_outside_vessels", "wall fraction outside vessel lumens", "%", 100.0),
     ("fibre_lumen_d_um_median", "fibre lumen eq. diameter, median", "µm", 1.0),
     ("fibre_lumen_d_um_q25", "fibre lumen eq. diameter, 25th pct", "µm", 1.0),
     ("fibre_lumen_d_um_q75", "fibre lumen eq. diameter, 75th pct", "µm", 1.0),
@@ -26,7 +27,8 @@ ROWS = [
     ("normal_l_p90", "wall normal |n_L|, 90th pct", "", 1.0),
     ("normal_l_p99", "wall normal |n_L|, 99th pct", "", 1.0),
     ("normal_l_share_gt_0.1", "share of wall surface with |n_L| > 0.1", "%", 100.0),
-    ("ray_slice_share", "L slices crossing a ray cell", "%", 100.0),
+    ("ray_slice_share", "L slices crossing a ray-cell lumen", "%", 100.0),
+    ("ray_lumen_t_um_median", "ray-cell lumen T extent, median", "µm", 1.0),
 ]
 TRACE_ROWS = [("haze", "haze", "%", 100.0), ("fwhm_r_deg", "FWHM_R", "°", 1.0),
               ("fwhm_l_deg", "FWHM_L", "°", 1.0)]
@@ -46,6 +48,7 @@ def _cell(s: dict | None, scale: float) -> str:
     lo, hi = s.get("ci95") or (None, None)
     if lo is None:
         return f"{_fmt(s['mean'], scale)} (n = {s.get('n', 1)})"
+    lo = max(lo, 0.0)  # every statistic here is at least 0 (a t-interval over few seeds is not)
     return f"{_fmt(s['mean'], scale)} [{_fmt(lo, scale)}, {_fmt(hi, scale)}]"
 
 
@@ -65,6 +68,7 @@ def _resolved(a: dict | None, b: dict | None) -> bool:
 
 
 def _label(label: str, unit: str) -> str:
+    label = label.replace("|", "\\|")  # |n_L| inside a Markdown table cell
     return f"{label} [{unit}]" if unit else label
 
 
@@ -107,14 +111,15 @@ def geometry_section(results: Path) -> str:
         if a is None and b is None:
             continue
         lines.append(f"| {_label(label, unit)} | {_cell(b, scale)} | {_cell(a, scale)} | {_ratio(a, b)} |")
-        if _resolved(a, b):
+        if _resolved(a, b) and max(abs(a["mean"]), abs(b["mean"])) * scale >= 1e-3:  # not both ~0
             resolved.append((key, label, a["mean"], b["mean"], unit, scale))
 
     tr = doc.get("trace", {}).get("stats")
     if tr:
         t = doc["trace"]
         lines += ["", f"Traced as scans (Δn = {t.get('delta_ri')}, {t.get('rays')} rays, beam "
-                      f"{t.get('beam_um')} µm, through the {t.get('thickness_um')} µm T extent):", "",
+                      f"{t.get('beam_um')} µm, through the {t.get('thickness_um')} µm T extent; FWHM by "
+                      f"{t.get('fwhm_estimator', 'half-max')}; mean over seeds [95 % t-interval]):", "",
                   "| method | quantity | port | twray | twray/port |", "|---|---|---|---|---|"]
         for method in ("accurate", "paper"):
             for key, label, unit, scale in TRACE_ROWS:
@@ -141,6 +146,19 @@ def geometry_section(results: Path) -> str:
                      "agree within the seed-to-seed spread (overlapping intervals).")
     else:
         lines.append("No difference is resolved: every pair of intervals over seeds overlaps.")
+    keys = {r[0] for r in resolved}
+    if "wall_fraction" in keys and "wall_fraction_outside_vessels" not in keys and ps.get("vessel_area_fraction"):
+        pv, tv = ps["vessel_area_fraction"].get("mean"), ts.get("vessel_area_fraction", {}).get("mean")
+        if pv is not None and tv is not None:
+            lines.append(f"The wall fraction goes with the vessel share ({_fmt(tv, 100)} % of the area in twray, "
+                         f"{_fmt(pv, 100)} % in the port): outside vessel lumens the intervals overlap.")
+    for c in doc.get("size_check", []):
+        pc, tc = c.get("port", {}), c.get("twray", {})
+        size = "×".join(f"{x:g}" for x in c.get("size_um", []))
+        lines.append(f"At {size} µm (one seed): vessel area {_fmt(pc.get('vessel_area_fraction'), 100)} % (port) "
+                     f"vs {_fmt(tc.get('vessel_area_fraction'), 100)} % (twray), wall fraction outside vessels "
+                     f"{_fmt(pc.get('wall_fraction_outside_vessels'), 100)} % vs "
+                     f"{_fmt(tc.get('wall_fraction_outside_vessels'), 100)} %.")
     val = doc.get("ray_detector_validation")
     if val:
         rec = [v["recall"] for v in val if v.get("recall") is not None]

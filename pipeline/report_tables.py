@@ -12,7 +12,7 @@ from .effects import Effect, study_dimension
 def _f(x, nd=2) -> str:
     return f"{x:.{nd}f}"
 
-def _with_ci(x: float, ci, nd: int = 2) -> str:
+def with_ci(x: float, ci, nd: int = 2) -> str:
     """``x [lo, hi]`` at ``nd`` decimals."""
     return f"{_f(x, nd)} [{_f(ci[0], nd)}, {_f(ci[1], nd)}]"
 
@@ -23,8 +23,8 @@ def table1_markdown(rows: list[dict]) -> list[str]:
     for r in rows:
         each = r["FWHM_R_each"]
         lines.append(
-            f"| {r['study']} | {r['parameter']} | {r['value']} | {_with_ci(r['FWHM_R'], r['FWHM_R_ci'])} | "
-            f"{_with_ci(r['FWHM_L'], r['FWHM_L_ci'])} | {_with_ci(r['haze'], r['haze_ci'], 1)} | {each.size} | "
+            f"| {r['study']} | {r['parameter']} | {r['value']} | {with_ci(r['FWHM_R'], r['FWHM_R_ci'])} | "
+            f"{with_ci(r['FWHM_L'], r['FWHM_L_ci'])} | {with_ci(r['haze'], r['haze_ci'], 1)} | {each.size} | "
             f"{r['transmitted']}/{r['rays']} | {_f(r['interfaces_per_ray'], 1)} | "
             f"{_f(each.min())} – {_f(each.max())} |")
     return lines
@@ -49,16 +49,21 @@ def woods_text(woods: dict, target: dict | None, first_seed: int) -> str:
             "wood of a seed is the same in every study and for every value of a study)")
 
 def variation_markdown(rows: list[dict]) -> list[str]:
-    """How much each value moves from one wood to the next, and what that does to its interval."""
-    lines = ["| study | value | FWHM_R: spread of the woods (CV) | FWHM_L: CV | haze: SD of the woods (points) "
-             "| FWHM_R interval, rays alone → with the woods |", "|---|---|---|---|---|---|"]
+    """How much each value moves from one wood to the next, split into what the woods and what each
+    wood's 1000 rays contribute (variance components), and what that does to its interval."""
+    lines = ["| study | value | FWHM_R: spread of the woods (CV) | of it, between woods · rays of one wood (SD, °) "
+             "| FWHM_L: CV | haze: SD of the woods (points) | of it, between woods · rays of one wood (points) "
+             "| FWHM_R interval, rays alone → with the woods |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         def cv(v):
             return f"{100 * np.std(v, ddof=1) / np.mean(v):.0f} %" if v.size > 1 and np.mean(v) > 0 else "—"
         ray, both = r["FWHM_R_ray_ci"], r["FWHM_R_ci"]
-        lines.append(f"| {r['study']} | {r['parameter']} {r['value']} | {cv(r['FWHM_R_each'])} | "
+        c = r.get("components", {})
+        fr = f"{c['FWHM_R'][0]:.2f} · {c['FWHM_R'][1]:.2f}" if "FWHM_R" in c else "—"
+        hz = f"{100 * c['haze'][0]:.1f} · {100 * c['haze'][1]:.1f}" if "haze" in c else "—"
+        lines.append(f"| {r['study']} | {r['parameter']} {r['value']} | {cv(r['FWHM_R_each'])} | {fr} | "
                      f"{cv(r['FWHM_L_each'])} | "
-                     f"{np.std(r['haze_each'], ddof=1) if r['haze_each'].size > 1 else float('nan'):.1f} | "
+                     f"{np.std(r['haze_each'], ddof=1) if r['haze_each'].size > 1 else float('nan'):.1f} | {hz} | "
                      f"±{(ray[1] - ray[0]) / 2:.2f}° → ±{(both[1] - both[0]) / 2:.2f}° |")
     return lines
 
@@ -94,7 +99,7 @@ def balsa_reading_sentence(radius, diameter) -> str:
     """The balsa sample with its quoted 35.2 µm read as a radius (70.4 µm cells) beside the preset's
     reading as a diameter, value by value (walls)."""
     def haze(one) -> str:
-        return _with_ci(100 * float(one["haze"]), (100 * float(one["haze_ci_lower"]),
+        return with_ci(100 * float(one["haze"]), (100 * float(one["haze_ci_lower"]),
                                                     100 * float(one["haze_ci_upper"])), 1)
 
     dim = study_dimension(radius)
@@ -114,7 +119,7 @@ def experiment_markdown(rows: list[dict]) -> list[str]:
     for r in rows:
         lines.append(
             f"| {r['wood']} TW, {r['thickness_mm']:g} mm, {r['fibre_um']:g} µm cells | {r['wall_um']:g} | "
-            f"{_with_ci(r['haze_inside'], r['haze_inside_ci'], 1)} | {_with_ci(r['haze_air'], r['haze_air_ci'], 1)} | "
+            f"{with_ci(r['haze_inside'], r['haze_inside_ci'], 1)} | {with_ci(r['haze_air'], r['haze_air_ci'], 1)} | "
             f"{', '.join(f'{v:.0f}' for v in r['haze_air_each'])} | "
             f"{r['FWHM_R_inside']:.2f} → {r['FWHM_R_air']:.2f} |")
     return lines
@@ -128,8 +133,8 @@ def fibre_tip_markdown(rows: list[dict]) -> list[str]:
         cells = [_effect_cell(ch[q]) if ch[q] is not None else "reference" for q in ("FWHM_R", "FWHM_L", "haze")]
         lines.append(
             f"| {'yes' if r['ray_cells'] else 'no'} | {r['tip_um']:g}{' (flat ends)' if not r['tip_um'] else ''} | "
-            f"{r['angle_deg']:.1f}° | {_with_ci(r['FWHM_R'], r['FWHM_R_ci'])} | {_with_ci(r['FWHM_L'], r['FWHM_L_ci'])} | "
-            f"{_with_ci(r['haze'], r['haze_ci'], 1)} | " + " | ".join(cells) + " |")
+            f"{r['angle_deg']:.1f}° | {with_ci(r['FWHM_R'], r['FWHM_R_ci'])} | {with_ci(r['FWHM_L'], r['FWHM_L_ci'])} | "
+            f"{with_ci(r['haze'], r['haze_ci'], 1)} | " + " | ".join(cells) + " |")
     return lines
 
 def fibre_tip_sentence(rows: list[dict]) -> str:

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from .analysis import (ESTIMATORS, LORENTZ_MLE, FwhmSpec, cauchy_fit, deviates, fwhm, half_max_of_counts,
+from .analysis import (ESTIMATORS, LORENTZ_MLE, FwhmSpec, cauchy_newton, cauchy_fit, deviates, fwhm, half_max_of_counts,
                        haze_ci, hist_bins, kde_plan, lorentz_hist_of_counts, lorentz_ks, voxels_read)
 
 N_BOOT = 2000  # resamples: the bounds move by about 1/√(2 · 2000) ≈ 1.6 % of the half-width from seed to seed
@@ -30,9 +30,11 @@ INTERVAL_WOODS = ("woods bootstrap (all rays of each drawn wood), standard error
 INTERVAL_RAYS = "bootstrap percentile over rays"
 
 
-def t_interval(point: float, draws: np.ndarray, n_woods: int, level: float = LEVEL) -> list:
+def t_interval(point: float, draws: np.ndarray, n_woods: int, level: float = LEVEL,
+               bounds: tuple = (-math.inf, math.inf)) -> list:
     """``point`` ± t(R − 1) · SE, SE the standard deviation of the woods' bootstrap ``draws`` scaled
-    by √(R/(R − 1)) (the bootstrap over R clusters sees (R − 1)/R of their variance)."""
+    by √(R/(R − 1)) (the bootstrap over R clusters sees (R − 1)/R of their variance), kept within
+    ``bounds`` (a width is at least 0, a haze within [0, 1])."""
     from scipy.stats import t as student_t
 
     ok = draws[np.isfinite(draws)]
@@ -40,7 +42,7 @@ def t_interval(point: float, draws: np.ndarray, n_woods: int, level: float = LEV
         return [float("nan"), float("nan")]
     se = float(np.std(ok, ddof=1)) * math.sqrt(n_woods / (n_woods - 1))
     half = float(student_t.ppf(0.5 + level / 2.0, n_woods - 1)) * se
-    return [point - half, point + half]
+    return [max(point - half, bounds[0]), min(point + half, bounds[1])]
 
 
 def hull(a: list, b: list) -> list:
@@ -75,6 +77,19 @@ class Angles:
         ok = self.x.size >= 2
         self.kde = kde_plan(self.x) if ok else None
         self.hist = hist_bins(self.x, spec) if ok else None
+        self._start = None  # the whole sample's Cauchy fit (loc, log γ), where resamples start
+
+    def _mle(self, x: np.ndarray) -> float:
+        """2γ of the Cauchy fit to a resample ``x``, Newton's method started from the whole sample's
+        fit (the usual start for a bootstrap; cauchy_fit's own start and fallbacks where it fails)."""
+        if self._start is None:
+            loc, g = cauchy_fit(self.x)
+            self._start = (loc, math.log(g)) if g > 0 else ()
+        if self._start:
+            fit = cauchy_newton(x, *self._start)
+            if fit is not None:
+                return 2.0 * fit[1]
+        return 2.0 * cauchy_fit(x)[1]
 
     def _grid(self, est: str):
         if est == "half-max":
@@ -95,8 +110,7 @@ class Angles:
         if self.x.size < 2:
             return np.full(len(weights), np.nan)
         if est == LORENTZ_MLE:
-            return np.array([2.0 * cauchy_fit(np.concatenate([np.repeat(p, 0) if w == 0 else
-                                                             np.tile(p, int(w)) for p, w in zip(self.parts, row)]))[1]
+            return np.array([self._mle(np.concatenate([np.tile(p, int(w)) for p, w in zip(self.parts, row) if w]))
                              for row in weights])
         grid = self._grid(est)
         if grid is None:
@@ -111,8 +125,7 @@ class Angles:
         if self.x.size < 2:
             return np.full(rows, np.nan)
         if est == LORENTZ_MLE:
-            return np.array([2.0 * cauchy_fit(np.concatenate([p[i[b]] for p, i in zip(self.parts, picks)]))[1]
-                             for b in range(rows)])
+            return np.array([self._mle(np.concatenate([p[i[b]] for p, i in zip(self.parts, picks)])) for b in range(rows)])
         grid = self._grid(est)
         if grid is None:
             return np.zeros(rows)
@@ -195,9 +208,10 @@ def reduce_angles(parts: list, *, spec: FwhmSpec = FwhmSpec(), n_boot: int = N_B
         w = woods_weights(n_real, n_boot, rng)
         for q, a in angles.items():
             for e in ESTIMATORS:
-                est_out[e][f"fwhm_{q}_ci_deg"] = t_interval(est_out[e][f"fwhm_{q}_deg"], a.woods_draws(e, w), n_real, level)
+                est_out[e][f"fwhm_{q}_ci_deg"] = t_interval(est_out[e][f"fwhm_{q}_deg"], a.woods_draws(e, w), n_real, level,
+                                                            bounds=(0.0, math.inf))
         with np.errstate(invalid="ignore", divide="ignore"):
-            out["haze_ci"] = t_interval(haze, (w @ dev_k) / (w @ dev_n), n_real, level)
+            out["haze_ci"] = t_interval(haze, (w @ dev_k) / (w @ dev_n), n_real, level, bounds=(0.0, 1.0))
     if n_boot:
         # Rays alone: every wood once, its rays redrawn (with one wood, every estimator's interval).
         ests = ESTIMATORS if n_real == 1 else (spec.estimator,)

@@ -107,7 +107,7 @@ def medium_of(job: TraceJob):
                                                  voxel_um=voxel, pitch_um=pitch, method=job.settings.method,
                                                  wood=not job.volume,
                                                  generated=not job.volume and job.reference is None,
-                                                 params=job.wood)
+                                                 params=job.wood) + limits.summary_estimate(rays)
 
 
 def run(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:

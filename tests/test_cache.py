@@ -233,7 +233,8 @@ def test_cache_ls_verify_and_gc(tmp_path, capsys):
     assert sorted(r["stage"] for r in rows) == ["micro", "pool", "rays", "summary"]
     about = {r["stage"]: r["about"] for r in rows}
     assert "birch wood, seed 3, 0.5 um voxels" in about["micro"] and "fast" in about["rays"]
-    assert about["pool"] == "1 wood realisations pooled, 200 bootstrap draws"
+    assert about["pool"] == "1 wood realisations pooled, FWHM half-max, 2000 bootstrap draws"
+    assert about["summary"].endswith("FWHM half-max")
     assert all(r["bytes"] > 0 for r in rows)
 
     assert main(["cache", "verify", "--cache", str(cache)]) == 0

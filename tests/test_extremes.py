@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pytest
 
+from pipeline.analysis import FwhmSpec
 from pipeline.summary import summarize
 from pipeline.optics import interface
 from pipeline.optics.sources import ArraySource, WoodSource
@@ -53,7 +54,8 @@ def test_delta_ri_zero_and_1e_9_scatter_nothing_and_the_width_is_linear_in_delta
     for dri in (0.0, 1e-9, -1e-9, 1e-6):
         res = trace_beam(birch(60.0), beam, n_wall=1.49 + dri, n_poly=1.49, settings=settings_for(method))
         sound(res)
-        s = summarize(res, n_boot=2)
+        # 60 rays: the Lorentz fit's width is the steadier measure of a scale (half-max is noisy on so few).
+        s = summarize(res, spec=FwhmSpec("lorentz-mle"), n_boot=2)
         assert s["n_transmitted"] == 60 and s["haze"] == 0.0 and res.events.sum() > 300
         widths[dri] = s["fwhm_r_deg"]
         if dri == 0.0:  # index matched: not one bit of any direction changes

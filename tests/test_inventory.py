@@ -64,8 +64,8 @@ def test_entries_are_listed_by_stage_with_their_size_and_provenance(cache, wood)
     assert e["micro"].about == f"birch wood, seed 3, 0.5 um voxels, 1 chunks, twray {__version__}"
     assert e["rays"].key == cache_key(RAYS)
     assert e["rays"].about == "rays 0-500 of wood abcdef01, fast, n_wall 1.5, 200 voxels thick, tracer 7"
-    assert e["summary"].about == "summary of 2 ray shards, 200 bootstrap draws"
-    assert e["pool"].about == "3 wood realisations pooled, 100 bootstrap draws"
+    assert e["summary"].about == "summary of 2 ray shards, FWHM lorentz-mle"  # a record before estimators
+    assert e["pool"].about == "3 wood realisations pooled, FWHM lorentz-mle, 100 bootstrap draws"
     assert e["camera"].about == "image [51, 51] px, with sheet, tracer 7"
     assert e["camera-rows"].about == f"rows 0-3 of camera image {cache_key(CAMERA)[:12]}"
     # A file's size is its bytes; a wood store's, all the files in it.
@@ -123,7 +123,7 @@ def test_damaged_entries_are_named_with_what_is_wrong(cache):
     assert path == ray and why.startswith("unreadable: ")
     assert verify(e["summary"]) == [(summary, "content does not match its digest")]
     assert verify(e["pool"]) == [(pool, "its record does not hash to its key")]
-    assert e["pool"].about == "3 wood realisations pooled, 99 bootstrap draws"  # what it now says it is
+    assert e["pool"].about == "3 wood realisations pooled, FWHM lorentz-mle, 99 bootstrap draws"  # what it now says it is
     assert verify(e["camera"]) == []  # the others are sound
 
 

@@ -200,8 +200,9 @@ def test_a_study_generates_each_wood_once_and_traces_every_scene_by_shards():
     two_values = study_estimate([one, other_value], shard_rays=500)
     rays_written = two_values.disk - voxels * limits.DISK_BYTES_PER_VOXEL  # one wood, then the rays' entries
     assert rays_written > 0  # how much: test_a_studys_disk_estimate_is_within_1_5x_of_what_it_writes
+    pool = limits.POOL_CPU_S + 1000 * limits.POOL_CPU_S_PER_RAY  # a value's pool of its 1000 rays
     assert two_values.cpu_s == pytest.approx(4 * shard.cpu_s + voxels / limits.GENERATE_VOXELS_PER_CPU_S["ellipse"]
-                                             + 2 * limits.SCENE_CPU_S + limits.DATASET_CPU_S)
+                                             + 2 * (limits.SCENE_CPU_S + pool) + limits.DATASET_CPU_S)
     # Peak memory: one value's rays read back at once, for every scene's Dataset.
     assert two_values.memory == limits.BASE_MEMORY + 1000 * (limits.RAY_BYTES + 2 * limits.DATASET_RAY_BYTES)
     two_woods = study_estimate([one, other_seed], shard_rays=500)
@@ -225,11 +226,14 @@ def test_an_exact_woods_region_is_costed_once_however_its_rays_are_sharded_and_i
     region = limits.surface_region_bytes(40.0, 1000.0, 14.5) * limits.REGION_CPU_S_PER_BYTE
     bare = trace_estimate(rays=1000, beam_um=40.0, thickness_um=1000.0, voxel_um=0.5, pitch_um=14.5,
                           method="exact", wood=False, store=True, generated=False)
-    assert one_shard.cpu_s == pytest.approx(bare.cpu_s + region + limits.SCENE_CPU_S + limits.DATASET_CPU_S)
+    pool = limits.POOL_CPU_S + 1000 * limits.POOL_CPU_S_PER_RAY  # a value's pool of its 1000 rays
+    assert one_shard.cpu_s == pytest.approx(bare.cpu_s + region + limits.SCENE_CPU_S + pool + limits.DATASET_CPU_S)
     two_values = study_estimate([scene, dataclasses.replace(scene, value=0.02, delta_ri=0.02)], shard_rays=1000)
-    assert two_values.cpu_s == pytest.approx(2 * (bare.cpu_s + limits.SCENE_CPU_S) + region + limits.DATASET_CPU_S)
-    two_woods = study_estimate([scene, dataclasses.replace(scene, seed=2)], shard_rays=1000)
-    assert two_woods.cpu_s == pytest.approx(two_values.cpu_s + region)
+    assert two_values.cpu_s == pytest.approx(2 * (bare.cpu_s + limits.SCENE_CPU_S + pool) + region
+                                             + limits.DATASET_CPU_S)
+    two_woods = study_estimate([scene, dataclasses.replace(scene, seed=2, realisation=1)], shard_rays=1000)
+    # Another wood of the same value: its region again, and its rays in the value's one pool.
+    assert two_woods.cpu_s == pytest.approx(two_values.cpu_s + region - limits.POOL_CPU_S)
 
 
 def test_a_study_traced_to_a_precision_is_costed_at_its_cap_of_rays():

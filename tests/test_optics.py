@@ -659,7 +659,7 @@ def test_cauchy_fit_recovers_a_known_lorentzian():
     x = stats.cauchy.rvs(loc=0.3, scale=1.7, size=20000, random_state=3)
     loc, gamma = cauchy_fit(x)
     assert loc == pytest.approx(0.3, abs=0.05)
-    assert fwhm(x) == pytest.approx(3.4, rel=0.03)
+    assert fwhm(x, "lorentz-mle") == pytest.approx(3.4, rel=0.03)
 
 
 def test_a_sample_mostly_of_one_angle_fits_a_width_of_zero_in_every_bootstrap():

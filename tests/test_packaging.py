@@ -101,7 +101,7 @@ def test_results_carry_their_provenance_and_open_with_plain_xarray_without_warni
     assert ds.FWHM_R.attrs["ancillary_variables"] == ("FWHM_R_ci_lower FWHM_R_ci_upper "
                                                       "FWHM_R_ray_ci_lower FWHM_R_ray_ci_upper")
     assert ds.FWHM_R_ci_lower.attrs["confidence_level"] == 0.95
-    assert ds.FWHM_R_ci_upper.attrs["bootstrap_resamples"] == 200 and ds.haze.attrs["threshold_deg"] == 2.5
+    assert ds.FWHM_R_ci_upper.attrs["bootstrap_resamples"] == 2000 and ds.haze.attrs["threshold_deg"] == 2.5
 
 
 def test_progress_lines_appear_when_stdout_is_a_pipe_and_not_with_quiet(tmp_path):
