@@ -156,6 +156,9 @@ def main(argv=None) -> int:
                     help="port volumes of another size: measured beside twray's birch of that size (one seed each)")
     ap.add_argument("--port-meta", type=Path, default=None,
                     help="JSON about how the port's volumes were made (commands, wall time, memory), copied in")
+    ap.add_argument("--port-no-ray-cells", nargs="*", type=Path, default=[],
+                    help="the port's volumes made with isExistRayCell 0: measured beside twray's birch without ray "
+                         "cells, the same seeds (where FWHM_L without ray cells comes from)")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "geometry.json")
     args = ap.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
@@ -207,6 +210,18 @@ def main(argv=None) -> int:
                        "twray": volume_statistics(v, args.twray_voxel_um)})
     if checks:
         doc["size_check"] = checks
+    if args.port_no_ray_cells:
+        p_stats, t_stats, p_seeds = [], [], []
+        for p in args.port_no_ray_cells:
+            params = p.parent.parent / "params.json"  # the port copies its parameters beside its output
+            seed = json.loads(params.read_text()).get("random_seed", 1) if params.exists() else 1
+            p_seeds.append(seed)
+            p_stats.append(volume_statistics((read_nrrd(p) >= 128).astype(np.uint8), args.port_voxel_um))
+            off = twray_volume(seed, size_um, args.twray_voxel_um, args.workdir, log, ("--set", "ray_cells=false"))
+            t_stats.append(volume_statistics(off, args.twray_voxel_um))
+        doc["no_ray_cells"] = {"seeds": p_seeds, "nrrd": [str(p) for p in args.port_no_ray_cells],
+                               "port": {"per_seed": p_stats, "stats": summarise(p_stats)},
+                               "twray": {"per_seed": t_stats, "stats": summarise(t_stats)}}
     if args.trace:
         tr = {"delta_ri": 0.01, "rays": args.rays, "beam_um": args.beam_um, "voxel_um": args.port_voxel_um,
               "thickness_um": size_um[1], "runs": []}

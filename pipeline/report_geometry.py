@@ -159,6 +159,17 @@ def geometry_section(results: Path) -> str:
                      f"vs {_fmt(tc.get('vessel_area_fraction'), 100)} % (twray), wall fraction outside vessels "
                      f"{_fmt(pc.get('wall_fraction_outside_vessels'), 100)} % vs "
                      f"{_fmt(tc.get('wall_fraction_outside_vessels'), 100)} %.")
+    nrc = doc.get("no_ray_cells")
+    if nrc:
+        pn, tn = nrc["port"]["stats"], nrc["twray"]["stats"]
+        lines += ["", f"Without ray cells (the port with `isExistRayCell` 0, twray with `ray_cells: false`; "
+                      f"{len(nrc.get('seeds', []))} seeds each): the fibres' own walls, where FWHM_L without ray "
+                      "cells comes from.", "", "| statistic | port | twray | twray/port |", "|---|---|---|---|"]
+        for key, label, unit, scale in ROWS:
+            if key.startswith(("normal_l", "wall_fraction", "interfaces")) and (key in pn or key in tn):
+                lines.append(f"| {_label(label, unit)} | {_cell(pn.get(key), scale)} | {_cell(tn.get(key), scale)} "
+                             f"| {_ratio(tn.get(key), pn.get(key))} |")
+        lines.append("")
     val = doc.get("ray_detector_validation")
     if val:
         rec = [v["recall"] for v in val if v.get("recall") is not None]

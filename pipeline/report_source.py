@@ -207,17 +207,40 @@ def geometry_gap(path: Path) -> str:
             f"seeds; section below). The fibres agree: lumen diameter {m(t, 'fibre_lumen_d_um_median'):.1f} against "
             f"{m(p, 'fibre_lumen_d_um_median'):.1f} µm, and the walls tilt along L alike (|n_L| > 0.1 on "
             f"{m(t, 'normal_l_share_gt_0.1', 100):.1f} % of twray's wall surface, {m(p, 'normal_l_share_gt_0.1', 100):.1f} % "
-            "of the port's, ray cells included in both): the source's geometry, as its generator draws it, is no more "
-            "tilted along L than twray's, so it does not account for 0.96° without ray cells (a port volume without "
-            "ray cells was not generated); that gap stays unexplained. "
-            f"Interfaces per mm along T: {m(t, 'interfaces_per_mm_t'):.0f} against "
-            f"{m(p, 'interfaces_per_mm_t'):.0f} (fewer walls in the port, through its larger vessel share in small volumes)")
+            "of the port's, ray cells included in both). ")
+    if "no_ray_cells" in doc:
+        line += _no_ray_cells_sentence(doc["no_ray_cells"]) + " "
+    else:
+        line += ("The source's geometry, as its generator draws it, is no more tilted along L than twray's, so it does "
+                 "not account for 0.96° without ray cells (a port volume without ray cells was not generated); that "
+                 "gap stays unexplained. ")
+    line += (f"Interfaces per mm along T: {m(t, 'interfaces_per_mm_t'):.0f} against "
+             f"{m(p, 'interfaces_per_mm_t'):.0f} (fewer walls in the port, through its larger vessel share in small volumes)")
     a, b = tr.get("twray/accurate", {}).get("haze"), tr.get("port/accurate", {}).get("haze")
     if a and b:
         line += (f"; traced the same way (`accurate`), haze {100 * a['mean']:.1f} % on twray's volumes against "
                  f"{100 * b['mean']:.1f} % on the port's ({100 * (a['mean'] - b['mean']):+.1f} points, intervals over "
                  "seeds overlapping): the same sign as the haze gaps above, not resolved")
     return line + "."
+
+
+def _no_ray_cells_sentence(nrc: dict) -> str:
+    """What the port's and twray's woods without ray cells say of FWHM_L without ray cells."""
+    p, t = nrc["port"]["stats"], nrc["twray"]["stats"]
+    share_p, share_t = 100 * p["normal_l_share_gt_0.1"]["mean"], 100 * t["normal_l_share_gt_0.1"]["mean"]
+    p90_p, p90_t = p["normal_l_p90"]["mean"], t["normal_l_p90"]["mean"]
+    lo_p = (p["normal_l_share_gt_0.1"].get("ci95") or [None])[0]
+    hi_t = (t["normal_l_share_gt_0.1"].get("ci95") or [None, None])[1]
+    resolved = lo_p is not None and hi_t is not None and lo_p > hi_t
+    head = (f"Without ray cells, |n_L| > 0.1 on {share_p:.1f} % of the port's wall surface against {share_t:.1f} % of "
+            f"twray's (90th percentile of |n_L| {p90_p:.3f} against {p90_t:.3f}; {len(nrc.get('seeds', []))} seeds): ")
+    if resolved:
+        return head + "the source's fibres tilt more along L, a geometric cause of its higher FWHM_L without ray cells."
+    if share_p > 1.5 * share_t:
+        return head + ("the source's fibres tilt more along L on these seeds, a candidate cause of its higher FWHM_L "
+                       "without ray cells, not resolved over so few seeds.")
+    return head + ("the source's fibres tilt along L no more than twray's, so its geometry does not account for 0.96° "
+                   "without ray cells either; that gap stays unexplained.")
 
 
 def geometry_note(results: Path) -> str:
@@ -285,6 +308,12 @@ def gap_lines(base: Path, methods: list) -> list[str]:
                    by[(False, "half-max")], by[(False, "lorentz-hist")], by[(False, "lorentz-mle")])
                + "The sensitivity table shows what a coarse histogram does to a narrow distribution: no bin width "
                "or range brings the fibres' own FWHM_L near the source's without ray cells.")
+    no_cells = [r for r in methods if r["study"] == "study-5-1" and r["value"] == "no"]
+    if no_cells:
+        r = no_cells[0]
+        out.append(f"- **The source's method without ray cells** (study 5-1, the same {r['realisations_common']} woods × "
+                   f"{r['rays_common']} rays): FWHM_L {r['FWHM_L_ref']:.2f}° with `{r['ref']}`, {r['FWHM_L_other']:.2f}° "
+                   f"with `{r['other']}`: the voxels and SVM normals do not make 0.96° out of this wood either.")
     tips = Path(base) / "fibre-tips" / "without-ray-cells.zarr"
     if tips.exists():
         t = open_dataset(tips)
