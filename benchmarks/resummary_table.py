@@ -8,7 +8,6 @@ resampled, t).  Run with the Datasets before re-summarising copied aside:
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np

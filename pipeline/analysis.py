@@ -88,6 +88,7 @@ def cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 10
 # Three estimators of a width (docs/methods.md#fwhm-and-haze); the default is the source's own definition.
 HALF_MAX, LORENTZ_HIST, LORENTZ_MLE = "half-max", "lorentz-hist", "lorentz-mle"
 ESTIMATORS = (HALF_MAX, LORENTZ_HIST, LORENTZ_MLE)
+SLUG = {e: e.replace("-", "_") for e in ESTIMATORS}  # an estimator's name in variable names: FWHM_R_half_max
 DEFAULT_ESTIMATOR = HALF_MAX
 # half-max: a Gaussian kernel density estimate of bandwidth h = KDE_C · IQR · n^(-1/5), binned at h/4.
 KDE_C = 0.3
@@ -116,9 +117,13 @@ class FwhmSpec:
         if not (isinstance(self.range_iqr, (int, float)) and self.range_iqr >= 1):
             raise ValueError(f"`fwhm.range_iqr` must be a number >= 1 (or .inf), got {self.range_iqr!r}")
 
+    def of(self, estimator: str) -> "FwhmSpec":
+        """The same histogram settings with another estimator."""
+        return FwhmSpec(estimator, self.bin_deg, self.range_iqr)
+
     @classmethod
     def from_dict(cls, d: dict | None) -> "FwhmSpec":
-        d = dict(d or {})
+        d = {k: float(v) if v == "inf" else v for k, v in (d or {}).items()}  # to_dict's JSON form of .inf
         unknown = set(d) - {"estimator", "bin_deg", "range_iqr"}
         if unknown:
             raise ValueError(f"unknown key `fwhm.{sorted(unknown)[0]}` (known: estimator, bin_deg, range_iqr)")
@@ -329,6 +334,13 @@ def haze(directions: np.ndarray, incident=(0.0, 1.0, 0.0)) -> float:
         return float("nan")
     cosang = np.sum(d * inc, axis=1) / (np.linalg.norm(d, axis=1) * np.linalg.norm(inc, axis=1))
     return float(np.mean(np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))) > HAZE_ANGLE_DEG))
+
+
+def deviated_from_angles(theta_r: np.ndarray, theta_l: np.ndarray) -> np.ndarray:
+    """1.0 where a ray leaves more than 2.5° from +T, from its two projected angles [degree] (a beam
+    along +T): the direction is ∝ (tan θ_R, 1, tan θ_L)."""
+    tr, tl = np.tan(np.radians(theta_r)), np.tan(np.radians(theta_l))
+    return (np.degrees(np.arccos(1.0 / np.sqrt(1.0 + tr * tr + tl * tl))) > HAZE_ANGLE_DEG).astype(np.float64)
 
 
 def deviates(directions: np.ndarray, incident=(0.0, 1.0, 0.0)) -> np.ndarray:

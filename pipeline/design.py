@@ -143,7 +143,8 @@ def plot_maps(maps: dict, path: Path) -> Path:
     for j, (name, ds) in enumerate(maps.items()):
         t, dri, haze = _with_zero(ds, "haze")
         _, _, fw = _with_zero(ds, "FWHM_R")
-        for i, (vals, label, scale) in enumerate(((haze, "haze [%]", 100.0), (fw, "FWHM_R [°]", 1.0))):
+        est = ds.attrs.get("fwhm_estimator", "lorentz-mle")
+        for i, (vals, label, scale) in enumerate(((haze, "haze [%]", 100.0), (fw, f"FWHM_R, {est} [°]", 1.0))):
             ax = axes[i, j]
             cf = ax.contourf(dri, t, vals * scale, levels=12, cmap="magma")
             fig.colorbar(cf, ax=ax, label=label)

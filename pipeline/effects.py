@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .analysis import HAZE_ANGLE_DEG, fwhm, image_quality
+from .analysis import deviated_from_angles, fwhm, image_quality
 from .summary import N_BOOT, percentile_interval, t_interval
 from .figures import TABLE1, open_dataset, value_label
 from .microstructure.model import tip_wall_angle_deg
@@ -46,13 +46,6 @@ def reference_index(ds) -> int:
             return int(hits[0])
     return 0
 
-def _haze_of(theta_r: np.ndarray, theta_l: np.ndarray) -> float:
-    """Haze of transmitted rays from their two projected angles (incidence along +T):
-    the direction is ∝ (tan θ_R, 1, tan θ_L)."""
-    tr, tl = np.tan(np.radians(theta_r)), np.tan(np.radians(theta_l))
-    dev = np.degrees(np.arccos(1.0 / np.sqrt(1.0 + tr * tr + tl * tl)))
-    return float(np.mean(dev > HAZE_ANGLE_DEG))
-
 def reduce_rays(theta_r, theta_l, ok, idx) -> np.ndarray:
     """FWHM_R, FWHM_L and haze of rays ``idx`` (those of them transmitted, ``ok``) of one value.
 
@@ -62,7 +55,7 @@ def reduce_rays(theta_r, theta_l, ok, idx) -> np.ndarray:
         theta_r, theta_l, ok, idx = theta_r[None], theta_l[None], ok[None], [(0, idx)]
     sel_r = np.concatenate([theta_r[r][i[ok[r][i]]] for r, i in idx])
     sel_l = np.concatenate([theta_l[r][i[ok[r][i]]] for r, i in idx])
-    return np.array([fwhm(sel_r), fwhm(sel_l), _haze_of(sel_r, sel_l)])
+    return np.array([fwhm(sel_r), fwhm(sel_l), float(np.mean(deviated_from_angles(sel_r, sel_l)))])
 
 def resample(rng: np.random.Generator, n_real: int, n_rays: int) -> list:
     """One bootstrap draw of (realisation, ray indices) pairs: with several woods, woods drawn
@@ -82,7 +75,7 @@ def interval(point: float, draws: np.ndarray, n_real: int) -> tuple[float, float
     return float(lo), float(hi)
 
 
-def p_value(effect: "Effect", draws_se: float | None = None) -> float:
+def p_value(effect: "Effect") -> float:
     """Two-sided p-value of an effect against no change, from its interval (t on woods − 1 d.o.f.,
     the interval's half-width being t · SE); NaN for an interval over rays alone."""
     from scipy.stats import t as student_t

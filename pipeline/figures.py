@@ -270,9 +270,10 @@ def plot_study(ds, path: Path) -> Path:
     name = ds[dim].attrs.get("long_name", dim).removesuffix(" um")
     xlabel = name + (f" ({units})" if units and units != "1" else "")
     fig, axes = plt.subplots(1, 3, figsize=(10, 3.2))
+    est = ds.attrs.get("fwhm_estimator", "lorentz-mle")  # Datasets before summary version 5: the Lorentz ML fit
     for ax, (var, scale, ylabel, colour) in zip(axes, (
-            ("FWHM_R", 1.0, "FWHM_R (°)", "#3b6ea8"),
-            ("FWHM_L", 1.0, "FWHM_L (°)", "#c0703a"),
+            ("FWHM_R", 1.0, f"FWHM_R, {est} (°)", "#3b6ea8"),
+            ("FWHM_L", 1.0, f"FWHM_L, {est} (°)", "#c0703a"),
             ("haze", 100.0, f"haze (%, > {HAZE_ANGLE_DEG:g}°)", "#5a9a5a"))):
         y = ds[var].values * scale
         lo = ds[f"{var}_ci_lower"].values * scale

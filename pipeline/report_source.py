@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .analysis import ESTIMATORS, FwhmSpec, fwhm
+from .analysis import ESTIMATORS, SLUG, FwhmSpec, fwhm
 from .effects import per_ray, study_dimension
 from .figures import open_dataset, value_label
 from .optics.interface import TRANSMITTED
+from .report_geometry import geometry_section
 from .report_tables import with_ci
 
 # The source's published numbers (docs/methods.md#the-source-s-published-numbers): ΔRI 0.01, wall 1.50 in polymer 1.49.
@@ -22,7 +23,6 @@ SOURCE = {
     "fwhm_l_ray_cells": {"simulated": 0.99},
     "fwhm_l_no_ray_cells": {"simulated": 0.96},
 }
-SLUG = {e: e.replace("-", "_") for e in ESTIMATORS}
 BINS_DEG = (0.1, 0.25, 0.5, 1.0)
 RANGES_IQR = (2.5, 5.0, 10.0, float("inf"))
 
@@ -243,15 +243,6 @@ def _no_ray_cells_sentence(nrc: dict) -> str:
                    "without ray cells either; that gap stays unexplained.")
 
 
-def geometry_note(results: Path) -> str:
-    """The geometry comparison with the source's generator (results/geometry.json), if measured."""
-    try:
-        from .report_geometry import geometry_section
-    except ImportError:
-        return ""
-    return geometry_section(Path(results))
-
-
 def source_sections(results: Path, base: Path, tables: dict, methods: list) -> list[str]:
     """"Which width" and "Against the source" (pipeline.report_source)."""
     L = ["## Which width: three estimators of FWHM", "",
@@ -275,7 +266,7 @@ def source_sections(results: Path, base: Path, tables: dict, methods: list) -> l
     L += against_source_markdown(against_source_rows(base))
     L += ["", "**The gaps, measured.**", ""]
     L += gap_lines(base, methods)
-    geo = geometry_note(results)
+    geo = geometry_section(Path(results))
     if geo:
         L += ["", geo]
     L.append("")

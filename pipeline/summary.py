@@ -102,8 +102,7 @@ class Angles:
         return lorentz_hist_of_counts(counts, self.hist)
 
     def point(self, est: str) -> float:
-        spec = FwhmSpec(est, self.spec.bin_deg, self.spec.range_iqr)
-        return fwhm(self.x, spec) if self.x.size else float("nan")
+        return fwhm(self.x, self.spec.of(est)) if self.x.size else float("nan")
 
     def woods_draws(self, est: str, weights: np.ndarray) -> np.ndarray:
         """The estimate on each resample of woods (rows of ``weights``)."""
@@ -198,7 +197,7 @@ def reduce_angles(parts: list, *, spec: FwhmSpec = FwhmSpec(), n_boot: int = N_B
     est_out = {e: {} for e in ESTIMATORS}
     for q, a in angles.items():
         for e in ESTIMATORS:
-            one = FwhmSpec(e, spec.bin_deg, spec.range_iqr)
+            one = spec.of(e)
             est_out[e][f"fwhm_{q}_deg"] = a.point(e)
             est_out[e][f"fwhm_{q}_each"] = [fwhm(p, one) if p.size else float("nan") for p in a.parts]
             est_out[e][f"fwhm_{q}_ci_deg"] = nan2
@@ -244,12 +243,12 @@ def reduce_angles(parts: list, *, spec: FwhmSpec = FwhmSpec(), n_boot: int = N_B
             p_k = dev_k / dev_n
             comps["haze"] = _components(p_k, p_k * (1.0 - p_k) / np.maximum(dev_n - 1.0, 1.0))
         for q, a in angles.items():
-            one = FwhmSpec(spec.estimator, spec.bin_deg, spec.range_iqr)
             ray_var = []
             for p in a.parts:  # each wood's value from its own rays, redrawn
-                sub = Angles([p], one)
-                pick = [rng.integers(0, p.size, (N_BOOT_WOOD, p.size))] if p.size >= 2 else [np.zeros((0, 0), int)]
-                d = sub.ray_draws(spec.estimator, pick) if p.size >= 2 else np.array([np.nan])
+                if p.size < 2:
+                    ray_var.append(float("nan"))
+                    continue
+                d = Angles([p], spec).ray_draws(spec.estimator, [rng.integers(0, p.size, (N_BOOT_WOOD, p.size))])
                 ray_var.append(float(np.nanvar(d, ddof=1)) if np.isfinite(d).sum() > 1 else float("nan"))
             comps[f"fwhm_{q}"] = _components(np.array(chosen[f"fwhm_{q}_each"]), np.array(ray_var))
     out.update({

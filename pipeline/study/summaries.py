@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..analysis import ESTIMATORS, HAZE_ANGLE_DEG, FwhmSpec
+from ..analysis import ESTIMATORS, HAZE_ANGLE_DEG, SLUG, FwhmSpec, deviated_from_angles
 from ..summary import N_BOOT, reduce_angles
 
-_SLUG = {e: e.replace("-", "_") for e in ESTIMATORS}
 _NAMES = {"half-max": "width at half the maximum of a kernel density estimate",
           "lorentz-hist": "2 gamma of a Lorentzian least-squares fitted to the histogram",
           "lorentz-mle": "2 gamma of a Cauchy maximum-likelihood fit"}
@@ -22,7 +21,7 @@ def summary_variables(pooled: list[dict]) -> dict:
     """{name: (dimensions after the values', array, attributes)} for values ``pooled`` (one
     :func:`pipeline.summary.pool` dict each, in the study's order)."""
     first = pooled[0]
-    spec = FwhmSpec.from_dict({k: (float(v) if v == "inf" else v) for k, v in first["fwhm"].items()})
+    spec = FwhmSpec.from_dict(first["fwhm"])
     n_real = first["realisations"]
     how = first["interval"]
     out = {}
@@ -41,7 +40,7 @@ def summary_variables(pooled: list[dict]) -> dict:
         put(f"FWHM_{Q}_per_realisation", lambda p: p["estimators"][spec.estimator][f"fwhm_{q}_each"],
             f"FWHM_{Q} of each realisation", "degree", ("realisation",))
         for e in ESTIMATORS:
-            s = f"FWHM_{Q}_{_SLUG[e]}"
+            s = f"FWHM_{Q}_{SLUG[e]}"
             put(s, lambda p: p["estimators"][e][f"fwhm_{q}_deg"], f"FWHM of theta_{Q} by {e}: {_NAMES[e]}", "degree")
             for b, i in (("lower", 0), ("upper", 1)):
                 put(f"{s}_ci_{b}", lambda p: p["estimators"][e][f"fwhm_{q}_ci_deg"][i],
@@ -91,13 +90,6 @@ def describe_intervals(ds, pooled: dict) -> None:
     ds.attrs["intervals"] = how
 
 
-def deviated_from_angles(theta_r: np.ndarray, theta_l: np.ndarray) -> np.ndarray:
-    """1.0 where a ray leaves more than 2.5° from +T, from its two projected angles (a beam along +T):
-    the direction is ∝ (tan θ_R, 1, tan θ_L)."""
-    tr, tl = np.tan(np.radians(theta_r)), np.tan(np.radians(theta_l))
-    return (np.degrees(np.arccos(1.0 / np.sqrt(1.0 + tr * tr + tl * tl))) > HAZE_ANGLE_DEG).astype(np.float64)
-
-
 def pooled_from_dataset(ds, *, spec: FwhmSpec, seed: int, n_boot: int = N_BOOT) -> list[dict]:
     """The pooled summary of every value of a study Dataset, from its own rays (C order over a
     grid's dimensions), with its stored counts.  Each wood's haze from the angles must equal the
@@ -139,7 +131,7 @@ def resummarized(ds, *, spec: FwhmSpec | None = None, n_boot: int = N_BOOT):
     from .plan import target_met
 
     if spec is None:
-        spec = FwhmSpec.from_dict(_spec_dict(ds.attrs["fwhm"])) if "fwhm" in ds.attrs else FwhmSpec()
+        spec = FwhmSpec.from_dict(json.loads(ds.attrs["fwhm"])) if "fwhm" in ds.attrs else FwhmSpec()
     pooled = pooled_from_dataset(ds, spec=spec, seed=int(ds.attrs["seed"]), n_boot=n_boot)
     value_dims = [d for d in ds["theta_r"].dims if d not in ("realisation", "ray")]
     shape = tuple(ds.sizes[d] for d in value_dims)
@@ -155,10 +147,6 @@ def resummarized(ds, *, spec: FwhmSpec | None = None, n_boot: int = N_BOOT):
         new.attrs["target_ci_met"] = int(target_met(Target(**json.loads(ds.attrs["target_ci"])), pooled))
     new.attrs["summary_version"] = versions.STAGES["pool"]
     return new, pooled
-
-
-def _spec_dict(text: str) -> dict:
-    return {k: (float(v) if v == "inf" else v) for k, v in json.loads(text).items()}
 
 
 def resummarize_file(path: Path, *, spec: FwhmSpec | None = None, n_boot: int = N_BOOT) -> list[dict]:
