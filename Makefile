@@ -19,7 +19,7 @@ STUDY_ARGS = --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) $(if $
 # Each scale has its own results folder: results/paper/ (committed), results/quick/ and results/small/.
 RESULTS = results/$(SCALE)
 
-.PHONY: install wheel-check demo test figures report experiment fibre-tips table1-paper-method convergence bench bench-generate bench-trace bench-exact bench-study bench-table1-paper bench-camera bench-accuracy bench-estimates tradeoff clean table1 camera camera-fast design $(STUDIES)
+.PHONY: install wheel-check demo test figures report experiment fibre-tips table1-paper-method convergence bench bench-generate bench-trace bench-exact bench-study bench-table1-paper bench-camera bench-accuracy bench-estimates tradeoff clean table1 camera camera-fast design wave bench-wave $(STUDIES)
 
 install: $(STAMP)
 
@@ -51,6 +51,12 @@ fibre-tips: install
 design: install
 	$(BIN)/twray study $(addprefix studies/design/,$(addsuffix .yaml,$(DESIGN))) $(STUDY_ARGS) --results $(RESULTS)/design --report $(RESULTS)/design/design.md
 	$(BIN)/twray figures --only design --results $(RESULTS) --out $(if $(filter paper,$(SCALE)),results/figures,$(RESULTS)/figures)
+
+## Where geometrical optics holds: `exact` rays against scalar waves (white light) on the same sections over ΔRI
+## -> results/<scale>/wave/regime.zarr and its figures (paper scale: about 25 min on 2 cores; quick: a quarter of the thickness).
+wave: install
+	$(BIN)/twray wave studies/wave/regime.yaml --scale $(SCALE) $(if $(SCHEDULER),--scheduler $(SCHEDULER)) --results $(RESULTS)/wave
+	$(BIN)/twray figures --only wave --results $(RESULTS) --out $(if $(filter paper,$(SCALE)),results/figures,$(RESULTS)/figures)
 
 ## Table 1 with the paper's method (500 rays per wood) beside `accurate` -> results/<scale>/paper-method/ (~3.5 CPU-h at paper scale).
 table1-paper-method: install
@@ -93,7 +99,7 @@ demo: install
 test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-bench: bench-generate bench-trace bench-exact bench-study bench-camera bench-accuracy bench-estimates
+bench: bench-generate bench-trace bench-exact bench-study bench-camera bench-accuracy bench-estimates bench-wave
 	$(BIN)/python benchmarks/bench_md.py --bench results/bench.json --out results/BENCH.md
 
 bench-generate: install
@@ -119,6 +125,10 @@ bench-study: install
 ## Table 1 at paper scale, cold in a fresh cache (20-30 min on 2 cores) -> results/bench.json (REPORT.md's cost).
 bench-table1-paper: install
 	$(BIN)/python benchmarks/bench_study.py --paper --out results/bench.json
+
+## The wave solver's cost per case beside `exact`, its convergence in dx and dz and its precision (about 4 min).
+bench-wave: install
+	$(BIN)/python benchmarks/bench_wave.py --out results/bench.json
 
 bench-camera: install
 	$(BIN)/python benchmarks/bench_camera.py --out results/bench.json

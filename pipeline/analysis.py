@@ -148,9 +148,12 @@ class Bins:
         i[(i < 0) | (i >= self.m)] = -1
         return i
 
-    def counts(self, x: np.ndarray) -> np.ndarray:
+    def counts(self, x: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """How many of ``x`` (or how much of their ``weights``) fall in each bin."""
         i = self.index(x)
-        return np.bincount(i[i >= 0], minlength=self.m).astype(np.float64)
+        keep = i >= 0
+        w = None if weights is None else np.asarray(weights, np.float64)[keep]
+        return np.bincount(i[keep], weights=w, minlength=self.m).astype(np.float64)
 
     @property
     def centres(self) -> np.ndarray:
@@ -166,9 +169,15 @@ def kde_plan(x: np.ndarray) -> tuple[Bins, float] | None:
     """The binned grid and bandwidth h [degree] of ``half-max`` for the sample ``x``; None where more
     than a quarter of the angles lie on each side of one value (IQR 0: a spike, of width 0)."""
     med, iqr = _quartiles(x)
+    return kde_grid(med, iqr, x.size)
+
+
+def kde_grid(med: float, iqr: float, n: float) -> tuple[Bins, float] | None:
+    """``half-max``'s grid and bandwidth for a distribution of median ``med`` and interquartile
+    range ``iqr`` [degree] estimated from ``n`` angles (None where the IQR is 0)."""
     if iqr == 0.0:
         return None
-    h = KDE_C * iqr * x.size ** -0.2
+    h = KDE_C * iqr * n ** -0.2
     step = h / KDE_BINS_PER_H
     half = 4.0 * iqr + 5.0 * h  # the peak and its half-maximum points for any unimodal shape seen (FWHM <= 4 IQR)
     m = int(math.ceil(2.0 * half / step)) + 1
@@ -217,14 +226,20 @@ def half_max_fwhm(theta_deg: np.ndarray) -> float:
 def hist_bins(x: np.ndarray, spec: FwhmSpec) -> Bins | None:
     """The histogram of ``lorentz-hist`` for the sample ``x`` (None where the IQR is 0)."""
     med, iqr = _quartiles(x)
+    return hist_grid(med, iqr, x.size, spec, span=(float(x.min()), float(x.max())))
+
+
+def hist_grid(med: float, iqr: float, n: float, spec: FwhmSpec, *, span: tuple[float, float]) -> Bins | None:
+    """``lorentz-hist``'s histogram for a distribution of median ``med`` and interquartile range
+    ``iqr`` [degree] estimated from ``n`` angles lying within ``span`` (None where the IQR is 0)."""
     if iqr == 0.0:
         return None
-    step = float(spec.bin_deg) if spec.bin_deg is not None else 2.0 * iqr * x.size ** (-1.0 / 3.0)
+    step = float(spec.bin_deg) if spec.bin_deg is not None else 2.0 * iqr * n ** (-1.0 / 3.0)
     if math.isfinite(spec.range_iqr):  # at least ten bins each side, however narrow the angles
         half = max(spec.range_iqr * iqr, HIST_MIN_BINS * step)
         lo, hi = med - half, med + half
     else:
-        lo, hi = float(x.min()), float(x.max())
+        lo, hi = span
     m = max(int(math.ceil((hi - lo) / step)), 3)
     return Bins(lo + step / 2.0, step, m)
 

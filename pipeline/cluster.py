@@ -113,7 +113,7 @@ def local_workers(command: str, workers: int | None) -> int:
     # Table 1 small ran 1.6x faster on 2 processes than on 1 process of 2 threads
     # (results/BENCH.md), so a study starts dask's split of the cores into processes.
     # The camera's row tasks share wood chunks in one process's memory and keep one worker.
-    return nprocesses_nthreads(os.cpu_count() or 1)[0] if command == "study" else 1
+    return nprocesses_nthreads(os.cpu_count() or 1)[0] if command in ("study", "wave") else 1
 
 
 @contextlib.contextmanager

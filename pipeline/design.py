@@ -13,6 +13,7 @@ haze interval's bounds (its upper bound crosses the limit first: the smallest
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -113,6 +114,20 @@ def window_line(ds, thickness_mm: float, haze_max: float) -> str:
             f"{edge_text(p, '+')} (95 % intervals, wood-to-wood variation included)")
 
 
+def regime_line(results: Path, preset: str, thickness_mm: float, haze_max: float, ds, exit: str) -> str:
+    """Whether rays hold at the window's two edges, from results/wave/regime.zarr (`make wave`)."""
+    from .publish import open_dataset
+    from .wave.run import verdict_at, verdict_text
+
+    path = Path(results) / "wave" / "regime.zarr"
+    if not path.exists():
+        return f"not measured (no {path}: run `make wave`)"
+    regime = open_dataset(path)
+    w = window(ds, thickness_mm, haze_max)
+    return "; ".join(f"{sign}{w[side].value:.2g}: {verdict_text(verdict_at(regime, preset, thickness_mm, s * w[side].value, exit))}"
+                     for side, sign, s in (("negative", "-", -1.0), ("positive", "+", 1.0)))
+
+
 def edge_text(e: Edge, sign: str, note: str = " (below the map's smallest |ΔRI|: on the line from ΔRI = 0)") -> str:
     """One side of a window as text: the edge and its interval, ordered along ΔRI."""
     if e.beyond:
@@ -131,9 +146,28 @@ def _with_zero(ds, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return (ds["thickness"].values.astype(float), np.insert(dri, k, 0.0), np.insert(v, k, 0.0, axis=1))
 
 
-def plot_maps(maps: dict, path: Path) -> Path:
+def regime_marks(ds, regime) -> tuple[list, list]:
+    """(ΔRI, thickness) points of the map ``ds`` where the regime map ``regime`` (rays against waves)
+    measured that rays do not hold (first list) and where they do (second); cells it did not
+    measure are in neither."""
+    from .wave.run import verdict_at
+
+    preset = json.loads(ds.attrs["scenes"])[0]["wood"]["species"]
+    exit = str(ds.attrs.get("exit_angles", "internal"))
+    out, ok = [], []
+    for t in ds["thickness"].values:
+        for d in ds["delta_ri"].values:
+            measured = float(d) in [float(v) for v in regime["delta_ri"].values]
+            v = verdict_at(regime, preset, float(t), float(d), exit) if measured else None
+            if v is not None:
+                (ok if v["holds"] else out).append((float(d), float(t)))
+    return out, ok
+
+
+def plot_maps(maps: dict, path: Path, regime=None) -> Path:
     """Haze and FWHM_R over thickness × ΔRI for each map (columns), the haze = 10, 20, 50 %
-    contours on both."""
+    contours on both; with ``regime`` (the rays-against-waves map), × on the cells where rays were
+    measured not to hold and ○ where they hold."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -151,6 +185,14 @@ def plot_maps(maps: dict, path: Path) -> Path:
             cs = ax.contour(dri, t, haze * 100.0, levels=[100 * h for h in HAZE_LEVELS], colors="w",
                             linewidths=1.0)
             ax.clabel(cs, fmt="%g %%", fontsize=7)
+            if regime is not None:
+                out, ok = regime_marks(ds, regime)
+                for pts, marker in ((out, "x"), (ok, "o")):
+                    if pts:
+                        ax.scatter(*zip(*pts), marker=marker, s=28, c="c", facecolors="none" if marker == "o" else None,
+                                   linewidths=1.2, label="rays do not hold (waves)" if marker == "x" else "rays hold")
+                if i == 0 and j == 0 and (out or ok):
+                    ax.legend(fontsize=6, loc="upper left")
             ax.set_xscale("symlog", linthresh=1e-3)
             ax.set_yscale("log")
             ax.set_xlabel("ΔRI (wall − polymer)")

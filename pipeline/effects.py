@@ -19,7 +19,8 @@ import numpy as np
 
 from .analysis import deviated_from_angles, fwhm, image_quality
 from .summary import N_BOOT, percentile_interval, t_interval
-from .figures import TABLE1, open_dataset, value_label
+from .figures import TABLE1, value_label
+from .publish import open_dataset
 from .microstructure.model import tip_wall_angle_deg
 from .optics.interface import TRANSMITTED
 from .params import WoodParams

@@ -34,6 +34,7 @@ from .analysis import HAZE_ANGLE_DEG, cauchy_fit, image_quality
 from .cache import atomic_write
 from .optics.interface import TRANSMITTED, TRAPPED
 from .params import Grid, WoodParams, build_params, validate
+from .publish import open_dataset
 
 TABLE1 = ("study-1", "study-2", "study-3", "study-4", "study-5-1", "study-5-2", "study-6")
 SECTION_UM = (300.0, 500.0, 600.0)  # the block the sections bound, along R, T, L [µm]
@@ -378,25 +379,15 @@ def plot_camera(ds, path: Path) -> Path:
 
 
 # ------------------------------------------------------------------ all of them
-def open_dataset(path: Path):
-    """A result Dataset, loaded (the store is closed before plotting)."""
-    import xarray as xr
-
-    if not Path(path).exists():
-        raise FileNotFoundError(f"{path} does not exist: run `make table1` (or `make camera`) first")
-    with xr.open_zarr(path, consolidated=False) as ds:
-        return ds.load()
-
-
 def make_figures(results: Path, out: Path, *, which: set[str] | None = None, log=print) -> list[Path]:
     """Every figure from the datasets under ``results`` (a scale's folder) into ``out``.
 
     ``which`` limits the work to some of ``{"microstructure", "trajectories",
-    "studies", "histograms", "camera", "design"}`` (the design maps are drawn when all of
-    results/design/ is there).
+    "studies", "histograms", "camera", "design", "wave"}`` (the design maps are drawn when all of
+    results/design/ is there, the wave figures when results/wave/regime.zarr is).
     """
     results, out = Path(results), Path(out)
-    which = which or {"microstructure", "trajectories", "studies", "histograms", "camera", "design"}
+    which = which or {"microstructure", "trajectories", "studies", "histograms", "camera", "design", "wave"}
     need = TABLE1 if which & {"microstructure", "studies"} else (
         ("study-1",) if which & {"histograms", "trajectories"} else ())
     datasets = {name: open_dataset(results / f"{name}.zarr") for name in need}
@@ -433,12 +424,18 @@ def make_figures(results: Path, out: Path, *, which: set[str] | None = None, log
         paths = {name: results / "design" / f"{name}.zarr" for name in MAPS}
         if all(p.exists() for p in paths.values()):
             maps = {name: open_dataset(p) for name, p in paths.items()}
-            made.append(plot_maps(maps, out / "design-maps.png"))
+            regime_path = results / "wave" / "regime.zarr"  # rays against waves: marks where rays were measured
+            regime = open_dataset(regime_path) if regime_path.exists() else None
+            made.append(plot_maps(maps, out / "design-maps.png", regime))
             log(f"wrote {made[-1]}")
             made.append(plot_windows(maps, out / "design-windows.png"))
             log(f"wrote {made[-1]}")
         else:
             log(f"design maps not drawn: {results / 'design'} lacks some of {', '.join(MAPS)} (run `make design`)")
+    if "wave" in which:
+        from .report_wave import wave_figures
+
+        made += wave_figures(results, out, log=log)
     return made
 
 

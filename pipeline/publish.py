@@ -145,3 +145,13 @@ def write_zarr(ds, path: Path) -> None:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*[Cc]onsolidated metadata.*")
         ds.to_zarr(path, mode="w", zarr_format=3, consolidated=True)
+
+
+def open_dataset(path: Path):
+    """A result Dataset, loaded (the store is closed before plotting)."""
+    import xarray as xr
+
+    if not Path(path).exists():
+        raise FileNotFoundError(f"{path} does not exist: run the make target that writes it (docs/guide.md)")
+    with xr.open_zarr(path, consolidated=False) as ds:
+        return ds.load()

@@ -21,11 +21,13 @@ from .effects import (N_BOOT, TABLE1, TRADEOFF_TARGETS, Effect, all_effects_of, 
                       setting_label, study_dimension, table1_rows)
 from .design import MAPS, window_table
 from .effects import p_value
-from .figures import open_dataset, table1_structures, traced_voxel, value_label
+from .figures import table1_structures, traced_voxel, value_label
+from .publish import open_dataset
 from .report_tables import (balsa_reading_sentence, effects_markdown, experiment_markdown, fibre_tip_markdown,
                             fibre_tip_sentence, method_markdown, method_summary, table1_markdown, variation_markdown,
                             woods_text)
 from .report_source import source_sections
+from .report_wave import wave_section
 
 # What geometrical optics leads one to expect of each study, before running it; the
 # report states whether twray's numbers agree.  (The source's own numbers are compared in
@@ -365,6 +367,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         add(f"![design maps]({fig}/design-maps.png)")
         add(f"![ΔRI windows]({fig}/design-windows.png)")
         add("")
+    L.extend(wave_section(results, scale_dir, fig))
     add("## Speed against accuracy")
     add("")
     add(f"From `make tradeoff` ({len(tradeoff['point'])} settings, each traced cold in its own process on a "

@@ -11,7 +11,8 @@ import numpy as np
 
 from .analysis import ESTIMATORS, SLUG, FwhmSpec, fwhm
 from .effects import per_ray, study_dimension
-from .figures import open_dataset, value_label
+from .figures import value_label
+from .publish import open_dataset
 from .optics.interface import TRANSMITTED
 from .report_geometry import geometry_section
 from .report_tables import with_ci

@@ -18,7 +18,8 @@ from pipeline.cli import main
 # pipeline.effects computes the report's numbers, pipeline.report(_tables) writes them as Markdown.
 from pipeline.effects import (FIBRE_TIPS, TABLE1, TRADEOFF_TARGETS, cheapest_meeting, effects, load_table1,
                               method_rows, per_ray, reduce_rays, table1_rows)
-from pipeline.figures import open_dataset, sections, structure_label, trajectories
+from pipeline.figures import sections, structure_label, trajectories
+from pipeline.publish import open_dataset
 from pipeline.microstructure.model import tip_wall_angle_deg
 from pipeline.optics.interface import TRANSMITTED
 from pipeline.params import build_params

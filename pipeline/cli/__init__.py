@@ -21,6 +21,7 @@ from .graphs import add_camera, add_study
 from .outputs import add_cache, add_design, add_figures, add_resummarize
 from .trace import add_trace
 from .volumes import add_generate, cmd_export_tiff, cmd_info, cmd_slices
+from .wave import add_wave
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_figures(sub)
     add_design(sub)
     add_resummarize(sub)
+    add_wave(sub)
     p = subparser(sub, "slices", help="PNG cross-sections in the R-T, L-T and L-R planes")
     p.add_argument("volume", help="a twray volume (.zarr)")
     p.add_argument("--out", required=True, help="output directory")

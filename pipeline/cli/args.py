@@ -94,6 +94,11 @@ EXAMPLES = {
                     "every width estimator, intervals over woods, variance components.",
                     ["twray resummarize results/paper/study-1.zarr",
                      "twray resummarize results/paper/design/*.zarr --fwhm lorentz-hist"]),
+    "wave": ("Where geometrical optics holds: trace each section of a regime file with `exact` rays and "
+             "propagate scalar waves (white light, several beam positions and realisations) through the same "
+             "section, then compare haze and FWHM_R cell by cell of ΔRI; cached case by case on a Dask cluster.",
+             ["twray wave studies/wave/regime.yaml --results results/paper/wave",
+              "twray wave studies/wave/regime.yaml --scale quick --results results/quick/wave"]),
 }
 
 

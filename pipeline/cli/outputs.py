@@ -86,7 +86,7 @@ def cmd_cache(args) -> int:
     return 0
 
 
-FIGURE_KINDS = ("microstructure", "trajectories", "studies", "histograms", "camera", "design")
+FIGURE_KINDS = ("microstructure", "trajectories", "studies", "histograms", "camera", "design", "wave")
 
 
 def add_figures(sub):
@@ -118,7 +118,7 @@ def add_design(sub):
 def cmd_design(args) -> int:
     import json
 
-    from ..design import open_map, window_line
+    from ..design import open_map, regime_line, window_line
     from .args import number
 
     thickness = number(args.thickness_mm, "thickness_mm")
@@ -127,6 +127,7 @@ def cmd_design(args) -> int:
     line = window_line(ds, thickness, haze_max)
     method = json.loads(ds.attrs["trace_settings"])["method"]
     print(f"{ds.attrs['title']}: {line}")
+    print(f"  ray optics at this window's edges: {regime_line(Path(args.results), args.preset, thickness, haze_max, ds, args.exit)}")
     print(f"  interpolated on {args.map or Path(args.results) / 'design'} ({ds.sizes['thickness']} thicknesses × "
           f"{ds.sizes['delta_ri']} ΔRI, {ds.attrs['realisations']} woods × {ds.attrs['rays']} rays per cell, "
           f"method {method}, scale {ds.attrs['scale']})")

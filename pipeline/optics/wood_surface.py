@@ -22,6 +22,7 @@ from ..microstructure.region import context_tuple, phases, region_context, warm_
 from ..microstructure.surface import new_cache
 from ..params import WoodParams
 from ._surface_march import HIT, NEEDS_REGION, TOL, march, new_work
+from .interface import SIDE
 
 # Internal steps [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are
 # (crossings land on a fixed lattice).  H_GRAD is part of the normal's definition.
@@ -41,8 +42,13 @@ class WoodSurface:
 
     def __init__(self, params: WoodParams, *, thickness_um: float, seed: int = 1, threads: int = 1,
                  hit: float = HIT, tol: float = TOL, h_grad: float = H_GRAD, step_scale: float = STEP_SCALE,
-                 margin_um: float | None = None):
+                 margin_um: float | None = None, r_bounds_um: tuple | None = None):
         self.params = params
+        # A wood bounded along R (a window of a section): a ray that ends outside, or whose next region
+        # would start or reach outside, leaves through a side (status SIDE), so that no ray wanders far
+        # along R; one that crosses a bound and comes back within one region is not caught (a bound
+        # against wandering, not an exact wall).  None: unbounded.
+        self.r_bounds_um = None if r_bounds_um is None else (float(r_bounds_um[0]), float(r_bounds_um[1]))
         self.thickness_um = float(thickness_um)
         self.seed = int(seed)
         self.hit, self.tol, self.h_grad, self.step_scale = float(hit), float(tol), float(h_grad), float(step_scale)
@@ -188,6 +194,12 @@ class WoodSurface:
                                (float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed)),
                                memos)
             todo = np.concatenate(left)
+            if self.r_bounds_um is not None and todo.size:
+                lo, hi = self.r_bounds_um
+                r = np.stack([out["position"][todo, 0], stop[todo, 0]])
+                gone = np.any((r < lo) | (r > hi), axis=0)
+                out["status"][todo[gone]] = SIDE
+                todo = todo[~gone]
             # A ray that left goes on from its last segment's start, in a region around that
             # segment reaching twice as far ahead as the last one did.
             start[todo] = out["position"][todo]
@@ -199,6 +211,9 @@ class WoodSurface:
             rounds += 1
             if rounds > MAX_ROUNDS:
                 raise RuntimeError("rays left every region tried: the tracer lost them")
+        if self.r_bounds_um is not None:
+            lo, hi = self.r_bounds_um
+            out["status"][(out["position"][:, 0] < lo) | (out["position"][:, 0] > hi)] = SIDE
         if log_events:
             out["log"] = log
         return out
