@@ -184,6 +184,23 @@ def render(doc: dict) -> str:
         md += ["", f"With `exact` (the committed images, `make camera SCALE=paper YES=1`): {x['wall_s'] / 60:.0f} min "
                f"on {x['cores']} cores for the {x['images']} images, {x['camera_rays']:,} camera rays and "
                f"{x['interfaces']:.3g} interfaces ({x['how']})."]
+    w = _get(doc, "wave")
+    md += ["", "## Wave optics (`make bench-wave`)", ""]
+    if w:
+        md += [f"On {w['cpus']} CPUs, one process: {w['summary']}", "",
+               "| section | nx × nz | index map [s] | waves [s] (wavelengths) | ns a row and cell | `exact` rays | `exact` [s] |",
+               "|---|---|---|---|---|---|---|"]
+        for c in w["cost"]:
+            md.append(f"| {c['section']} | {c['nx']} × {c['nz']} | {c['index_map_s']} | {c['waves_s']} ({c['wavelengths']}) | "
+                      f"{c['ns_per_row_cell']} | {c['exact_rays']} | {c['exact_s']} |")
+        md += ["", "| section | halving dx and dz: haze [points], half-max [rel.] | doubling dz: haze, half-max |",
+               "|---|---|---|"]
+        for c in w["convergence"]:
+            a, b = c["half_dx_dz"], c["twice_dz"]
+            md.append(f"| {c['section']} | {a['haze_points_max']}, {a['half_max_rel_max']} | {b['haze_points_max']}, "
+                      f"{b['half_max_rel_max']} |")
+    else:
+        md.append("Not run (`make bench-wave`).")
     return "\n".join(md) + "\n"
 
 

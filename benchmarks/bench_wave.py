@@ -67,10 +67,11 @@ def convergence(regime, name: str) -> dict:
     for label, samp in (("half_dx_dz", Sampling(s.sub_um / 2, s.per_dx, s.per_dz)),
                         ("twice_dz", Sampling(s.sub_um, s.per_dx, 2 * s.per_dz))):
         other = run_case(dataclasses.replace(one, sampling=samp), g, 0)
-        out[label] = {
-            "haze_points_max": round(100 * float(np.max(np.abs(other["haze_wave_internal"] - base["haze_wave_internal"]))), 3),
-            "half_max_rel_max": round(float(np.max(np.abs(other["half-max_wave_internal"] / base["half-max_wave_internal"] - 1))), 4),
-        }
+        dh = 100 * (other["haze_wave_internal"] - base["haze_wave_internal"])
+        dw = other["half-max_wave_internal"] / base["half-max_wave_internal"] - 1
+        out[label] = {"haze_points_max": round(float(np.max(np.abs(dh))), 3),
+                      "half_max_rel_max": round(float(np.max(np.abs(dw))), 4),
+                      "haze_points": [round(float(v), 3) for v in dh], "half_max_rel": [round(float(v), 4) for v in dw]}
     return out
 
 

@@ -39,7 +39,8 @@ EXPECTED = {
     "study-2": ("widths ∝ |ΔRI|, about equal for ±ΔRI to first order", "each refraction deflects by ≈ "
                 "(ΔRI/n)·tan θi, odd in ΔRI, so the distribution of its size depends on |ΔRI| alone; but near "
                 "grazing incidence total reflection traps rays in the thin walls for +ΔRI and in the wide lumens "
-                "for −ΔRI, which need not scatter alike"),
+                "for −ΔRI, which need not scatter alike (a ray explanation; \"Where geometrical optics holds\" "
+                "tests it with waves)"),
     "study-3": ("larger fibres scatter less: widths × about 1/√2", "half as many walls per mm along T: "
                 "about half the interfaces per ray"),
     "study-4": ("thicker walls change little", "the same interfaces per ray (the fibre pitch is fixed); "

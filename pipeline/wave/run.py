@@ -25,6 +25,7 @@ from .spectrum import SPECTRUM_GRID_DEG, diffraction_limit_deg, white_light
 HAZE_TOL = 0.02  # rays hold where |haze_ray - haze_wave| <= 2 points ...
 FWHM_TOL = 0.10  # ... and |FWHM_R ray / wave - 1| <= 10 % (half-max)
 PER_EXIT = ("haze", HALF_MAX, LORENTZ_HIST)
+WINDOW_LOST = 0.01  # waves losing more than this at the window's sides have a FWHM_R cut by the window
 
 
 def case_record(regime: Regime, geometry, realisation: int) -> dict:
@@ -134,6 +135,9 @@ def with_verdict(ds):
     ds["rays_hold"] = ((abs(ds["haze_difference"]) <= HAZE_TOL) & (abs(ds["fwhm_r_ratio"] - 1.0) <= FWHM_TOL)).astype(
         np.int8)
     ds["haze_holds"] = (abs(ds["haze_difference"]) <= HAZE_TOL).astype(np.int8)
+    # Light spread beyond the window's angle is absorbed at its sides (counted in haze): past WINDOW_LOST
+    # of the power, the waves' FWHM_R is cut by the window, a lower bound, and the width's verdict is open.
+    ds["window_limited"] = (ds["wave_lost"].mean("realisation") > WINDOW_LOST).astype(np.int8)
     return ds
 
 
@@ -146,12 +150,13 @@ def _describe(ds, regime: Regime, lam) -> None:
         "title": regime.title, "wave_version": WAVE_VERSION, "scale": regime.scale,
         "ri_polymer": regime.ri_polymer, "beam_um": regime.beam_um, "rays_per_realisation": regime.rays * regime.positions,
         "beam_positions": regime.positions, "wavelengths_nm": json.dumps([round(float(v) * 1e3, 2) for v in lam]),
-        "light": "CIE illuminant C x ybar (equal-weight quantiles, 400-700 nm)",
+        "light": "CIE illuminant C × ȳ at the equal-weight quantiles of 400–700 nm",
         "sampling": json.dumps(regime.sampling.to_dict()), "dx_um": regime.sampling.dx_um,
         "dz_um": regime.sampling.dz_um, "keep_deg": regime.keep_deg, "haze_tolerance": HAZE_TOL,
         "fwhm_tolerance": FWHM_TOL,
         "verdict": "rays_hold = 1 where |haze_ray - haze_wave| <= haze_tolerance and |FWHM_R half-max ray / wave - 1| "
-                   "<= fwhm_tolerance (means over realisations)",
+                   "<= fwhm_tolerance (means over realisations); window_limited = 1 where the waves lost more than "
+                   f"{WINDOW_LOST:g} of their power at the window's sides (their FWHM_R a lower bound)",
     })
     units = {"haze": "1", "FWHM": "degree", "wave_": "1", "ray_": "1", "distribution": "1", "haze_difference": "1",
              "fwhm_r_ratio": "1"}
