@@ -180,7 +180,7 @@ def write_regime(regime: Regime, cache, results) -> Path:
 def verdict_at(ds, preset: str, thickness_mm: float, delta_ri: float, exit: str = "internal") -> dict | None:
     """What the regime map ``ds`` says of rays for a wood of ``preset`` at ``thickness_mm``: the
     measured cell of that thickness (within 1 %) whose ΔRI has the same sign and is nearest on a
-    log scale; None where no section of that wood and thickness was measured.  Keys: ``holds``
+    log scale, within a factor of 2; None where no such cell was measured.  Keys: ``holds``
     (haze and FWHM_R within tolerance), ``haze_holds``, ``delta_ri`` (the cell's), ``haze_difference``."""
     kinds = [str(k) for k in ds["kind"].values]
     thick = [float(t) for t in ds["thickness_mm"].values]
@@ -190,6 +190,8 @@ def verdict_at(ds, preset: str, thickness_mm: float, delta_ri: float, exit: str 
     if not geos or not same or delta_ri == 0:
         return None
     v = min(same, key=lambda d: abs(math.log(abs(d) / abs(delta_ri))))
+    if abs(math.log(abs(v) / abs(delta_ri))) > math.log(2.0):  # no measured ΔRI within a factor of 2
+        return None
     cell = ds.sel(geometry=geos[0], exit=exit, delta_ri=v)
     return {"holds": bool(int(cell["rays_hold"])), "haze_holds": bool(int(cell["haze_holds"])), "delta_ri": v,
             "geometry": str(geos[0]), "haze_difference": float(cell["haze_difference"]),
@@ -199,7 +201,7 @@ def verdict_at(ds, preset: str, thickness_mm: float, delta_ri: float, exit: str 
 def verdict_text(v: dict | None) -> str:
     """One verdict as words, for `twray design` and the design maps' captions."""
     if v is None:
-        return "not measured against waves at this thickness"
+        return "not measured against waves at this thickness and ΔRI (`make wave`; add it to the regime file)"
     what = "rays hold" if v["holds"] else ("haze only holds" if v["haze_holds"] else "rays do not hold")
     return (f"{what} (waves, {v['geometry']} at ΔRI {v['delta_ri']:+g}: haze rays − waves "
             f"{100 * v['haze_difference']:+.1f} points, FWHM_R rays / waves {v['fwhm_r_ratio']:.2f})")
