@@ -18,7 +18,7 @@ import time
 import numpy as np
 from _bench_json import write_section
 
-from pipeline.wave.regime import load_regime, ray_origins, run_case
+from pipeline.wave.regime import POSITION_SPACING_UM, load_regime, ray_angles, ray_origins, run_case
 from pipeline.wave.sections import slices
 from pipeline.wave.solver import Sampling, absorber, gaussian_beam, propagate
 from pipeline.wave.spectrum import white_light
@@ -29,8 +29,6 @@ REGIME = "studies/wave/regime.yaml"
 def cost(regime, name: str) -> dict:
     """Seconds for a section's index map, for propagating five wavelengths, and for `exact`'s rays."""
     from scipy import fft as sfft
-
-    from pipeline.wave.regime import _ray_angles
 
     g = next(x for x in regime.geometries if x.name == name)
     section, make_medium = g.section(regime.seed)
@@ -47,9 +45,9 @@ def cost(regime, name: str) -> dict:
     propagate(u0, maps, k0=2 * math.pi / lam, delta_n=np.full(lam.size, 0.01), n0=np.full(lam.size, 1.49),
               sampling=s, mask=absorber(nx, s.dx_um))
     t_wave = time.perf_counter() - t0
-    origins = np.vstack([ray_origins(regime, regime.seed, p, p * 5000.0 + x[nx // 2]) for p in range(regime.positions)])
+    origins = np.vstack([ray_origins(regime, regime.seed, p, p * POSITION_SPACING_UM + x[nx // 2]) for p in range(regime.positions)])
     t0 = time.perf_counter()
-    _ray_angles(make_medium(0.0, regime.positions * 5000.0 + nx * s.dx_um), origins, regime.ri_polymer, 0.01)
+    ray_angles(make_medium(0.0, regime.positions * POSITION_SPACING_UM + nx * s.dx_um), origins, regime.ri_polymer, 0.01)
     t_rays = time.perf_counter() - t0
     rows_cells = lam.size * nx * nz
     return {"section": name, "thickness_mm": g.thickness_um / 1e3, "nx": nx, "nz": nz, "index_map_s": round(t_map, 2),

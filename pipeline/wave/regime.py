@@ -243,7 +243,7 @@ def run_case(regime: Regime, geometry: Geometry, realisation: int) -> dict:
         origins = ray_origins(regime, seed, p, r0 + x[nx // 2])
         medium = section_medium(r0, r0 + nx * samp.dx_um)
         for i, d in enumerate(dri):
-            for e, th in _ray_angles(medium, origins, regime.ri_polymer, float(d)).items():
+            for e, th in ray_angles(medium, origins, regime.ri_polymer, float(d)).items():
                 ray_theta[e][i].append(th)
                 if e == "internal":
                     ray_out[i] += (regime.rays - th.size) / (regime.rays * regime.positions)
@@ -274,7 +274,7 @@ def _chain(first, rest):
     yield from rest
 
 
-def _ray_angles(medium, origins: np.ndarray, n_poly: float, delta_ri: float) -> dict:
+def ray_angles(medium, origins: np.ndarray, n_poly: float, delta_ri: float) -> dict:
     """θ_R [degree] of ``exact`` rays through ``medium`` (inside, and into air), which left through
     the exit face, and which left the window through a side (counted as deviated, as the waves'
     light absorbed at the window's sides is)."""

@@ -85,10 +85,10 @@ def compute(regime: Regime, cache, client, *, progress: str = "off") -> int:
 
 
 def regime_dataset(regime: Regime, cache):
-    """The map of ``regime`` from its cached cases (all must be present)."""
+    """The map of ``regime`` from its cached cases (one missing is computed here)."""
     import xarray as xr
 
-    geos, nd, nr = regime.geometries, len(regime.delta_ri), regime.realisations
+    geos, nr = regime.geometries, regime.realisations
     cases = [[cached_case(regime, g, r, cache) for r in range(nr)] for g in geos]
     dims = ("geometry", "exit", "delta_ri", "realisation")
     data = {}
