@@ -45,7 +45,10 @@ def cmd_wave(args) -> int:
         for g in ds.geometry.values:
             row = inside.sel(geometry=g)
             holds = [f"{d:+g}" for d, h in zip(ds.delta_ri.values, row["rays_hold"].values) if h]
-            print(f"  {g} ({float(row.thickness_mm):g} mm): rays hold (inside, 2 haze points and 10 % FWHM_R) at "
-                  f"ΔRI {', '.join(holds) if holds else 'none of the values'}")
+            haze = [f"{d:+g}" for d, h, b in zip(ds.delta_ri.values, row["haze_holds"].values, row["rays_hold"].values)
+                    if h and not b]
+            print(f"  {g} ({float(row.thickness_mm):g} mm, angles inside): rays hold (haze within 2 points, FWHM_R "
+                  f"within 10 % of the waves') {'at ΔRI ' + ', '.join(holds) if holds else 'at no ΔRI'}"
+                  + (f"; haze alone at {', '.join(haze)}" if haze else ""))
     print(f"{len(todo)} cases computed in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -75,7 +75,8 @@ def compute(regime: Regime, cache, client, *, progress: str = "off") -> int:
 
     arg = dask.delayed(regime, name=f"regime-{regime.name}", traverse=False)
     tasks, labels = [], {}
-    for g, r in todo:
+    # The thickest sections first: their cases take longest, and the workers then end together.
+    for g, r in sorted(todo, key=lambda c: -c[0].thickness_um):
         key = f"wave-{g.name}-{r}"
         labels[key] = f"{regime.name} {g.name} realisation {r}"
         tasks.append(dask.delayed(cached_case, pure=False)(arg, g, r, str(cache), dask_key_name=key))
