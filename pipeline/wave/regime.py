@@ -10,6 +10,7 @@ centres) through the same section at every ΔRI.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,7 @@ from ..analysis import HALF_MAX, LORENTZ_HIST, deviated_from_angles, half_max_fw
 from ..optics.settings import INDEX_RANGE
 from ..params import ParameterError, build_params, read_yaml_file
 from .sections import LatticeSection, WoodSection, extruded, slices
-from .solver import ABSORBER_UM, Sampling, StepReflectance, absorber, gaussian_beam, kx_of, propagate
+from .solver import ABSORBER_UM, Sampling, StepReflectance, absorber, gaussian_beam, kx_of, propagate, propagator
 from .spectrum import exit_angles, power_summary, stored_distribution, white_light
 
 WAVE_VERSION = "3"  # bump when a case's numbers change for the same inputs
@@ -220,15 +221,14 @@ def run_case(regime: Regime, geometry: Geometry, realisation: int) -> dict:
         it = slices(section, r0_um=r0, nx=nx, nz=nz, sampling=samp)
         first = next(it)
         fbar = float(first.mean()) / samp.levels
-        steps = StepReflectance(_chain(first, it), samp.levels)
+        steps = StepReflectance(itertools.chain([first], it), samp.levels)
         n0 = np.full(k0.size, regime.ri_polymer) + dn * fbar
         u0 = np.tile(gaussian_beam(x, x[nx // 2], regime.beam_um), (k0.size, 1))
         spec, lost_p = propagate(u0, steps, k0=k0, delta_n=dn, n0=n0, sampling=samp,
                                  mean_fraction=fbar, mask=mask)
         u = sfft.ifft(spec, axis=1)
         big = sfft.fft(u, n=nx * PAD, axis=1)
-        free = sfft.fft(u0, n=nx * PAD, axis=1) * np.exp(
-            1j * (np.sqrt((k0 * n0)[:, None] ** 2 - kxp[None, :] ** 2 + 0j) - (k0 * n0)[:, None]) * nz * samp.dz_um)
+        free = sfft.fft(u0, n=nx * PAD, axis=1) * propagator(kxp, k0 * n0, nz * samp.dz_um, np.complex128)
         overlap = np.abs(np.sum(big * np.conj(free), axis=1)) ** 2 / (
             np.sum(np.abs(big) ** 2, axis=1) * np.sum(np.abs(free) ** 2, axis=1))
         lost[p] = lost_p.reshape(lam.size, nd)
@@ -267,11 +267,6 @@ def run_case(regime: Regime, geometry: Geometry, realisation: int) -> dict:
                 out["distribution_wave"][i] = stored_distribution(t, w)
                 out["distribution_ray"][i] = stored_distribution(th)
     return out
-
-
-def _chain(first, rest):
-    yield first
-    yield from rest
 
 
 def ray_angles(medium, origins: np.ndarray, n_poly: float, delta_ri: float) -> dict:

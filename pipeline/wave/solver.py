@@ -93,11 +93,11 @@ def kx_of(nx: int, dx_um: float) -> np.ndarray:
     return 2.0 * math.pi * np.fft.fftfreq(nx, dx_um)
 
 
-def propagator(kx: np.ndarray, k: np.ndarray, dz_um: float) -> np.ndarray:
+def propagator(kx: np.ndarray, k: np.ndarray, dz_um: float, dtype=np.complex64) -> np.ndarray:
     """(B, nx) exp(i (kz − k) dz) for background wavenumbers ``k`` = k0·n0 (B,): exact for
     propagating waves, decaying for evanescent ones (the carrier e^{ikz} left out)."""
     kz = np.sqrt((k[:, None] ** 2 - kx[None, :] ** 2).astype(np.complex128))
-    return np.exp(1j * (kz - k[:, None]) * dz_um).astype(np.complex64)
+    return np.exp(1j * (kz - k[:, None]) * dz_um).astype(dtype)
 
 
 def propagate(field: np.ndarray, slices, *, k0: np.ndarray, delta_n: np.ndarray, n0: np.ndarray,
@@ -123,8 +123,8 @@ def propagate(field: np.ndarray, slices, *, k0: np.ndarray, delta_n: np.ndarray,
     dz = sampling.dz_um
     k = np.asarray(k0, np.float64) * np.asarray(n0, np.float64)
     kx = kx_of(nx, sampling.dx_um)
-    full = propagator(kx, k, dz).astype(dtype)
-    half = propagator(kx, k, dz / 2.0).astype(dtype)
+    full = propagator(kx, k, dz, dtype)
+    half = propagator(kx, k, dz / 2.0, dtype)
     frac = np.arange(sampling.levels + 1) / sampling.levels - mean_fraction
     table = np.exp(1j * (np.asarray(k0)[:, None] * np.asarray(delta_n)[:, None]) * frac[None, :] * dz)
     table = table.astype(dtype)
