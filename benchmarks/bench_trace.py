@@ -95,7 +95,7 @@ def tube_errors(method: str, wall: float, rays_per_tube: int = 600, n_tubes: int
         res = _across(vol, c0, b, method)
         t = res.transmitted
         err.append(np.abs(res.theta_r[t] - exact[t]))
-        thin += int(res.fallbacks[:, 2].sum())
+        thin += int(res.extras["thin_wall_normals"].sum())
         events += int(res.events.sum())
     e = np.concatenate(err)
     return {"wall_vox": wall, "rays": int(e.size), "median_abs_error_deg": float(np.median(e)),

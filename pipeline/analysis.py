@@ -430,21 +430,6 @@ class Target:
                 "max_rays": self.max_rays, "max_realisations": self.max_realisations}
 
 
-def voxels_read(result) -> int:
-    """Voxels a voxel method read for ``result`` (0 for a surface method): the voxels along
-    each path, and at each interface the normal's neighbourhood (a Gaussian window of radius
-    ``radius_vox``, evaluated 1 + ``refit`` times, or the paper's SVM box)."""
-    st = result.settings.voxel
-    if st is None:
-        return 0
-    if result.settings.method == "paper":
-        per_interface = st.svm_box ** 3
-    else:
-        per_interface = (2 * math.ceil(st.radius_vox) + 1) ** 3 * (1 + st.refit)
-    voxel = result.voxel_um or 1.0  # None: the voxel backend's own result, lengths in voxels
-    return int(np.sum(result.path / voxel) + np.sum(result.events) * per_interface)
-
-
 def image_quality(image: np.ndarray, ideal: np.ndarray) -> dict:
     """How far a rendered image is from its ideal thin-lens image.
 

@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 from .analysis import (ESTIMATORS, LORENTZ_MLE, FwhmSpec, cauchy_newton, cauchy_fit, deviates, fwhm, half_max_of_counts,
-                       haze_ci, hist_bins, kde_plan, lorentz_hist_of_counts, lorentz_ks, voxels_read)
+                       haze_ci, hist_bins, kde_plan, lorentz_hist_of_counts, lorentz_ks)
 
 N_BOOT = 2000  # resamples: the bounds move by about 1/√(2 · 2000) ≈ 1.6 % of the half-width from seed to seed
 N_BOOT_WOOD = 200  # resamples of one wood's rays for the ray part of the variance components
@@ -290,12 +290,8 @@ def summarize(result, *, spec: FwhmSpec = FwhmSpec(), n_boot: int = N_BOOT, seed
     out = pool([result], spec=spec, n_boot=n_boot, seed=seed)
     out.update({
         "counts": result.counts(),
-        "voxels_read": voxels_read(result),
-        "degenerate_normals": int(result.fallbacks[:, 0].sum()),
-        "face_disagreements": int(result.fallbacks[:, 1].sum()),
-        # Normals taken at the face point: walls thinner than the smoothing.
-        "thin_wall_normals": int(result.fallbacks[:, 2].sum()),
         "method": result.settings.method,
         "exit": result.settings.exit,
     })
+    out.update(result.voxel_counts())  # none for a surface medium
     return out

@@ -123,15 +123,14 @@ def run(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:
     if job.target is not None:
         summary["target_ci"] = job.target.to_dict()
         summary["target_ci_met"] = job.target.met(summary)
-    summary.update({"refine": result.settings.refine, "traced_voxel_um": job.traced_voxel_um,
-                    "delta_ri": job.optics.delta_ri, "ri_polymer": job.optics.n_poly,
+    summary.update({"delta_ri": job.optics.delta_ri, "ri_polymer": job.optics.n_poly,
                     "incidence_deg": list(job.incidence_deg or (0.0, 0.0)),
-                    "seconds": time.perf_counter() - t0, "chunks_loaded": result.chunks_loaded})
-    if not job.volume:  # the wood the trace needed, against what it read (none for surfaces)
-        chunks = 0
-        if job.settings.medium_kind == "voxels":
+                    "seconds": time.perf_counter() - t0, **result.diagnostics})
+    if job.settings.medium_kind == "voxels":  # a surface medium reads and generates no voxels
+        summary["refine"] = result.settings.refine
+        if not job.volume:  # the wood the trace needed, against what it read
             chunks = medium.generated if job.reference is not None else len(medium.distinct)
-        summary["voxels_generated"] = chunks * (math.prod(medium.chunks) if chunks else 0)
+            summary["voxels_generated"] = chunks * math.prod(medium.chunks)
     return result, summary
 
 

@@ -246,7 +246,7 @@ def test_a_process_packs_each_chunk_of_a_wood_once_and_traces_identically_from_t
     first_src, first = run(3)
     again_src, again = run(3)
     other_src, _ = run(4)
-    assert first_src.generated > 0 and first.chunks_loaded == again.chunks_loaded
+    assert first_src.generated > 0 and first.diagnostics["chunks_loaded"] == again.diagnostics["chunks_loaded"]
     assert again_src.generated == 0
     assert other_src.generated > 0  # other wood matches none of them
     assert np.array_equal(again.exit_direction, first.exit_direction)
@@ -509,7 +509,7 @@ def test_thin_tube_walls_deflect_as_exact_optics(method, wall, median_deg, above
                          n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method))
         t = res.transmitted
         errors.append(np.abs(res.theta_r[t] - exact[keep][t]))
-        thin += int(res.fallbacks[:, 2].sum())
+        thin += int(res.extras["thin_wall_normals"].sum())
         events += int(res.events.sum())
     e = np.concatenate(errors)
     assert e.size > 1400
@@ -534,7 +534,7 @@ def test_a_one_voxel_flat_sheet_leaves_rays_parallel_to_themselves(method, phase
                              Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(100)),
                              n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method))
             t = res.transmitted
-            assert t.sum() > 95 and res.fallbacks[t, 2].sum() > 0
+            assert t.sum() > 95 and res.extras["thin_wall_normals"][t].sum() > 0
             err.append(np.hypot(res.theta_r[t], res.theta_l[t]))
     err = np.concatenate(err)
     assert np.median(err) < 0.2 and np.mean(err > 1.0) < 0.06

@@ -25,7 +25,7 @@ def rays(gamma_r_deg, n, seed, *, gamma_l_deg=0.5):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     z = np.zeros((n, 3))
     return RayResult(position=z, direction=d, exit_direction=d, status=np.ones(n, np.int8),
-                     events=np.full(n, 10), path=np.zeros(n), fallbacks=np.zeros((n, 3), np.int64),
+                     events=np.full(n, 10), path=np.zeros(n),
                      settings=settings_for("fast"))
 
 

@@ -37,7 +37,7 @@ def test_a_clear_volume_is_crossed_straight_with_positions_and_paths_in_um(metho
     assert np.all(res.status == TRANSMITTED) and np.all(res.events == 0)
     np.testing.assert_allclose(res.position, beam.origins + thickness * u / u[1], atol=1e-9)
     np.testing.assert_allclose(res.path, thickness / u[1], rtol=1e-12)
-    assert res.voxel_um == voxel_um
+    assert res.diagnostics["traced_voxel_um"] == voxel_um
 
 
 def test_index_matched_exact_lattice_counts_every_phase_change_of_the_straight_line():
@@ -171,3 +171,29 @@ def test_trace_to_target_doubles_up_to_the_cap():
 def test_methods_name_their_medium():
     assert set(METHODS.values()) == {"voxels", "surfaces"} and METHODS["exact"] == "surfaces"
     assert math.isfinite(traced_voxel_um(0.5, settings_for("exact")))
+
+
+@pytest.mark.parametrize("method", ["exact", "fast"])
+def test_the_faces_are_the_same_for_every_medium(method):
+    """The faces are handled once (optics/faces.py), whatever marches the interior: through
+    index-matched birch a beam from air leaves into air along its own direction; a ray that meets
+    the exit face beyond the critical angle is totally reflected there; a ray in a wall leaves with
+    the wall's index (its `incident` too), and a ray entering outside a finite volume leaves
+    through a side."""
+    from pipeline.optics.interface import SIDE, TIR_EXIT
+
+    s = dataclasses.replace(settings_for(method), exit="air")
+    wood = wood_medium(BIRCH, seed=2, thickness_um=20.0, voxel_um=0.5, settings=s)
+    air = np.array([0.4, 1.0, -0.3]) / np.linalg.norm([0.4, 1.0, -0.3])
+    beam = square_beam(40, 30.0, seed=3, direction=air)
+    res = trace(wood, beam, Optics(1.5, 1.5, n_outside=1.0), s)
+    assert np.all(res.status == TRANSMITTED)
+    np.testing.assert_allclose(res.exit_direction, np.broadcast_to(air, (40, 3)), atol=1e-12)
+    np.testing.assert_allclose(res.incident, res.exit_direction, atol=1e-12)
+    steep = np.array([math.tan(math.radians(50.0)), 1.0, 0.0])  # 50° inside n = 1.5: sin 0.77 · 1.5 > 1
+    res = trace(wood, square_beam(10, 30.0, seed=3, direction=steep), Optics(1.5, 1.5), s)
+    assert np.all(res.status == TIR_EXIT) and np.all(np.isnan(res.incident))
+    if method == "fast":  # a finite volume: a ray entering beside it leaves through a side
+        vol = ArraySource(np.zeros((20, 10, 20), np.uint8), voxel_um=1.0)
+        res = trace(vol, square_beam(10, 5.0, (40.0, 10.0), seed=1), Optics(1.5, 1.5), s)
+        assert np.all(res.status == SIDE) and np.all(res.events == 0)

@@ -221,7 +221,7 @@ def render_rows(camera: Camera, sheet: Sheet | None, target: Target, rows, *,
         res = trace(medium, Beam(origins, dirs, ids),
                     Optics(sheet.ri_wall, sheet.ri_polymer, n_outside=1.0, seed=sheet.seed), settings)
         interfaces = float(res.events.sum())
-        loads = res.chunks_loaded
+        loads = res.diagnostics.get("chunks_loaded", 0)
         xr = res.position[:, 0] * mm
         xl = res.position[:, 2] * mm
         out = res.exit_direction

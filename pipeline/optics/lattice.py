@@ -134,7 +134,7 @@ class Lattice:
         if backwards:
             status = np.where(status == TRANSMITTED, REFLECTED, np.where(status == REFLECTED, TRANSMITTED, status))
         position, direction_, events, path = (out.pop(k) for k in ("position", "direction", "events", "path"))
-        return RayResult(position, direction_, direction_, status, events, path, np.zeros((n, 3), np.int64),
+        return RayResult(position, direction_, direction_, status, events, path,
                          settings_for("exact", max_events=max_events), extras=out)
 
     def _run(self, pos, dirs, n_wall, n_poly, thickness_um, max_events, normal_noise_deg=0.0) -> dict:

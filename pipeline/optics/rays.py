@@ -73,6 +73,12 @@ def square_beam(n_rays: int, width: float, centre=(0.0, 0.0), *, seed: int,
     return Beam(origins, d, ids)
 
 
+# The voxel backend's per-ray counts among a RayResult's extras: normals that fell back (no
+# gradient; the face and the direction disagreed; a wall thinner than the smoothing, normal
+# taken at the face point), and the voxels read (the path, and each interface's neighbourhood).
+VOXEL_COUNTS = ("degenerate_normals", "face_disagreements", "thin_wall_normals", "voxels_read")
+
+
 @dataclass
 class RayResult:
     """Per-ray outcome of a trace (angles in degrees; positions and lengths in µm from
@@ -84,17 +90,18 @@ class RayResult:
     status: np.ndarray  # (N,) codes of STATUS_NAMES
     events: np.ndarray  # (N,) interfaces met
     path: np.ndarray  # (N,) geometric path length
-    fallbacks: np.ndarray  # (N, 3) voxel methods: degenerate normals, face/direction disagreements, thin-wall normals
     settings: TraceSettings
-    chunks_loaded: int = 0  # voxel methods: chunks paged in
     # (N, 3) the direction each ray would leave in, in the convention of
     # exit_direction, had nothing deflected it (haze is measured from it);
     # None: every ray came in along +T.  NaN where that undeflected ray could
     # not leave into air (total reflection at the exit face).
     incident: np.ndarray | None = None
-    voxel_um: float | None = None  # voxel methods: the side of the voxels traced [µm]
-    # Per-ray arrays a medium adds (e.g. the exact lattices' "medium", the phase each ray ends in).
+    # Per-ray arrays its backend adds: "medium" (the phase each ray ends in), and the voxel
+    # methods' counts (VOXEL_COUNTS) or the exact march's "evaluations" and "passes".
     extras: dict = field(default_factory=dict)
+    # Numbers of the whole trace its backend adds (voxel methods: "chunks_loaded",
+    # "traced_voxel_um"); none for a surface medium.
+    diagnostics: dict = field(default_factory=dict)
 
     @property
     def transmitted(self) -> np.ndarray:
@@ -110,6 +117,10 @@ class RayResult:
         d = self.exit_direction
         return np.degrees(np.arctan2(d[:, 2], d[:, 1]))
 
+    def voxel_counts(self) -> dict[str, int]:
+        """The voxel backend's counts (VOXEL_COUNTS) summed over the rays; none for a surface medium."""
+        return {name: int(np.sum(self.extras[name])) for name in VOXEL_COUNTS if name in self.extras}
+
     def counts(self) -> dict[str, int]:
         return {name: int(np.sum(self.status == code)) for code, name in STATUS_NAMES.items()}
 
@@ -119,9 +130,11 @@ class RayResult:
 
 
 def concatenate(parts: list[RayResult]) -> RayResult:
-    """RayResults of consecutive parts of one beam as one."""
+    """RayResults of consecutive parts of one beam as one (counts among the diagnostics added)."""
     first = parts[0]
     merged = {f.name: np.concatenate([getattr(p, f.name) for p in parts])
               for f in dataclasses.fields(first) if isinstance(getattr(first, f.name), np.ndarray)}
     extras = {k: np.concatenate([p.extras[k] for p in parts]) for k in first.extras}
-    return dataclasses.replace(first, **merged, extras=extras, chunks_loaded=sum(p.chunks_loaded for p in parts))
+    diagnostics = {k: sum(p.diagnostics[k] for p in parts) if isinstance(v, int) else v
+                   for k, v in first.diagnostics.items()}
+    return dataclasses.replace(first, **merged, extras=extras, diagnostics=diagnostics)

@@ -2,9 +2,10 @@
 
 Every caller (study, camera, command line, benchmarks) traces through here and
 never asks which kind of medium it holds (docs/methods.md#media): a voxel
-medium goes to the voxel backend (:mod:`pipeline.optics.voxels`), a surface
-medium traces its own walls; Snell's law, total internal reflection, the
-entrance and exit faces and the statistics are the same for both.
+medium is marched by the voxel backend (:mod:`pipeline.optics.voxels`), a
+surface medium marches its own walls; the entrance and exit faces are handled
+once for both (:mod:`pipeline.optics.faces`), and Snell's law, total internal
+reflection and the statistics are the same.
 """
 
 from __future__ import annotations
@@ -14,11 +15,11 @@ import math
 import numpy as np
 
 from ..params import ParameterError
-from .interface import ACTIVE, TIR_EXIT, TRANSMITTED, enter_from, leave_into_air
+from .faces import through_faces
 from .media import kind_of
 from .rays import Beam, RayResult, concatenate
 from .settings import METHODS, Optics, TraceSettings
-from .voxels import trace_voxels
+from .voxels import voxel_interior
 
 
 def trace(medium, beam: Beam, optics: Optics, settings: TraceSettings) -> RayResult:
@@ -48,50 +49,24 @@ def trace(medium, beam: Beam, optics: Optics, settings: TraceSettings) -> RayRes
         able = ", ".join(m for m, k in METHODS.items() if k == kind)
         raise ParameterError(f"`method` {settings.method!r} traces {METHODS[settings.method]}, but this medium "
                              f"offers {kind}: use {able}")
-    if kind == "voxels":
-        return trace_voxels(medium, beam, optics, settings)
-    return _trace_surfaces(medium, beam, optics, settings)
+    interior = voxel_interior(medium, settings) if kind == "voxels" else _SurfaceInterior(medium)
+    return through_faces(interior, beam.origins, beam.unit_directions(), beam.ray_ids, optics, settings)
 
 
-def _trace_surfaces(medium, beam: Beam, optics: Optics, settings: TraceSettings) -> RayResult:
-    """A surface medium's trace, with the faces handled as for voxels: refraction into the phase
-    each ray enters (``optics.n_outside``) and out into air (``settings.exit``)."""
-    n = len(beam.ray_ids)
-    dirs = beam.unit_directions()
-    status = np.zeros(n, np.int64)
-    n_entry = None
-    if optics.n_outside is not None or settings.exit == "air":
-        n_entry = np.where(medium.entry_phase(beam.origins) == 1, optics.n_wall, optics.n_poly)
-    if optics.n_outside is not None:
-        status = enter_from(dirs, n_entry, float(optics.n_outside))
-    entered = dirs.copy()
-    live = np.flatnonzero(status == ACTIVE)
-    out = medium.trace_surfaces(beam.origins[live], dirs[live], n_wall=optics.n_wall, n_poly=optics.n_poly,
-                                max_events=settings.max_events, fresnel=settings.fresnel, seed=optics.seed,
-                                ray_ids=beam.ray_ids[live])
-    position = np.array(beam.origins, np.float64, copy=True)
-    position[:, 1] = 0.0
-    direction = dirs.copy()
-    events, path = np.zeros(n, np.int64), np.zeros(n)
-    medium_end = np.zeros(n, np.uint8)
-    status[live] = out.pop("status")
-    for name, arr in (("position", position), ("direction", direction), ("events", events), ("path", path),
-                      ("medium", medium_end)):
-        arr[live] = out.pop(name)
-    extras = {"medium": medium_end}
-    for name, arr in out.items():
-        full = np.zeros((n,) + arr.shape[1:], arr.dtype)
-        full[live] = arr
-        extras[name] = full
-    exit_dirs, incident = direction, entered
-    if settings.exit == "air":
-        done = status == TRANSMITTED
-        exit_dirs, tir = leave_into_air(direction, np.where(medium_end == 1, optics.n_wall, optics.n_poly), done)
-        status[done & tir] = TIR_EXIT
-        incident, blocked = leave_into_air(entered, n_entry, np.ones(n, bool))
-        incident[blocked] = np.nan
-    return RayResult(position, direction, exit_dirs, status, events, path, np.zeros((n, 3), np.int64), settings, 0,
-                     incident, extras=extras)
+class _SurfaceInterior:
+    """A surface medium between the faces: it marches its own walls (in µm)."""
+
+    def __init__(self, medium):
+        self.medium = medium
+
+    def entry_phase(self, origins):
+        return self.medium.entry_phase(origins)
+
+    def march(self, origins, dirs, phase, ray_ids, *, optics: Optics, settings: TraceSettings):
+        out = self.medium.trace_surfaces(origins, dirs, n_wall=optics.n_wall, n_poly=optics.n_poly,
+                                         max_events=settings.max_events, fresnel=settings.fresnel, seed=optics.seed,
+                                         ray_ids=ray_ids)
+        return out, {}
 
 
 TRACE_BATCHES = 40  # a long trace reports its progress batch by batch

@@ -11,7 +11,6 @@ ends transmitted, reflected back out, out through a side, or trapped.
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 
@@ -21,9 +20,9 @@ from ..params import ParameterError
 from . import _march as K
 from ._normals import NEWTON_REACH, window_scratch
 from ._packing import OUTSIDE, mark_boxes, phases_at
-from .interface import (NEEDS_CHUNK, NEEDS_NORMAL, REFLECTED, SIDE, TIR_EXIT, TRANSMITTED, enter_from,
-                        leave_into_air)
-from .rays import Beam, RayResult
+from .faces import NO_PHASE, through_faces
+from .interface import NEEDS_CHUNK, NEEDS_NORMAL
+from .rays import VOXEL_COUNTS, Beam, RayResult
 from .settings import PRESETS, Optics, TraceSettings
 from .sources import ChunkCache
 
@@ -103,11 +102,103 @@ def _chunks_of_boxes(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.argwhere(grid) + base
 
 
+class VoxelInterior:
+    """The voxel backend between the faces (:func:`~pipeline.optics.faces.through_faces`):
+    the phase at the entry points and the interior march through the volume ``source``, its
+    chunks paged in as rays need them; positions and lengths in units of ``unit_um`` µm (the
+    voxels' side: in voxels)."""
+
+    def __init__(self, source, settings: TraceSettings, *, unit_um: float = 1.0, capacity: int = 512):
+        self.source, self.settings = source, settings
+        self.scale = float(source.voxel_um) / float(unit_um)  # the voxels' side in the caller's unit
+        self.cache = ChunkCache(source, capacity=capacity)
+
+    def _voxels(self, origins):
+        pos = origins / self.scale if self.scale != 1.0 else origins.astype(np.float64).copy()
+        pos[:, 1] = 0.0
+        vox = np.floor(pos).astype(np.int64)
+        vox[:, 1] = 0
+        return pos, vox
+
+    def entry_phase(self, origins: np.ndarray) -> np.ndarray:
+        """The phase of the voxel each ray enters (NO_PHASE outside a finite volume)."""
+        _, vox = self._voxels(origins)
+        cache = self.cache
+        cache.require(_unique_rows(vox // np.asarray(self.source.chunks)).tolist())
+        phase = np.zeros(len(vox), np.uint8)
+        phases_at(cache.bits, cache.table, cache.box, cache.chunk_shape, np.asarray(self.source.shape, np.int64),
+                  vox, phase)
+        phase[phase == OUTSIDE] = NO_PHASE
+        return phase
+
+    def march(self, origins, dirs, phase, ray_ids, *, optics: Optics, settings: TraceSettings) -> tuple[dict, dict]:
+        vs = settings.voxel
+        cache, source = self.cache, self.source
+        pos, vox = self._voxels(origins)
+        dirs = np.array(dirs, np.float64, copy=True)
+        medium = np.array(phase, np.uint8, copy=True)
+        n = len(ray_ids)
+        status = np.full(n, NEEDS_CHUNK, np.int8)
+        events = np.zeros(n, np.int64)
+        path = np.zeros(n)
+        fallbacks = np.zeros((n, 3), np.int64)
+        request = vox // np.asarray(source.chunks)
+        normals = np.zeros((n, 4))
+        shape = np.asarray(source.shape, np.int64)
+        cs = cache.chunk_shape
+        method = K.PAPER if settings.method == "paper" else K.EXACT
+        reach = (int(math.ceil(vs.radius_vox + NEWTON_REACH)) + 2 if method == K.EXACT
+                 else vs.svm_box)
+        scratch = window_scratch(vs.radius_vox)
+        while n:
+            K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
+                    ray_ids, cache.bits, cache.masks, cache.table, cache.box, cs, shape, method,
+                    vs.step_vox, vs.sigma_vox, vs.radius_vox, vs.newton,
+                    vs.refit, optics.n_wall, optics.n_poly, settings.fresnel, np.uint64(optics.seed),
+                    settings.max_events, *scratch)
+            waiting = np.flatnonzero(status == NEEDS_CHUNK)
+            asking = np.flatnonzero(status == NEEDS_NORMAL)
+            if waiting.size == 0 and asking.size == 0:
+                break
+            if waiting.size:
+                # Keep every chunk that a live ray's normal window may read, or rays
+                # near chunk borders would evict each other's chunks forever.
+                live = (vox if method == K.EXACT else np.floor(pos).astype(np.int64))[status >= NEEDS_CHUNK]
+                # The chunks each live ray's window [x - reach, x + reach] spans.
+                keep = map(tuple, _chunks_of_boxes((live - reach) // cs, (live + reach) // cs).tolist())
+                cache.require(_unique_rows(request[waiting]).tolist(), keep=set(keep))
+            half = vs.svm_box // 2
+            for r in asking:
+                centre = pos[r]
+                lo = np.floor(centre).astype(np.int64) - (half - 1)
+                box = cache.voxels(lo, (vs.svm_box,) * 3)
+                w, ok = svm_normal(box, centre, lo)
+                normals[r, :3] = w
+                normals[r, 3] = 1.0 if ok else 0.0
+        loads = cache.loads
+        cache.release()  # its buffers serve the next trace of this process
+        # Voxels read: those along each path, and at each interface the normal's neighbourhood
+        # (a Gaussian window of radius ``radius_vox``, evaluated 1 + ``refit`` times, or the
+        # paper's SVM box).
+        if settings.method == "paper":
+            per_interface = vs.svm_box ** 3
+        else:
+            per_interface = (2 * math.ceil(vs.radius_vox) + 1) ** 3 * (1 + vs.refit)
+        out = {"position": pos * self.scale if self.scale != 1.0 else pos, "direction": dirs,
+               "status": status.astype(np.int64), "events": events,
+               "path": path * self.scale if self.scale != 1.0 else path, "medium": medium,
+               "voxels_read": path + events * float(per_interface)}
+        out.update({name: fallbacks[:, q] for q, name in enumerate(VOXEL_COUNTS[:3])})
+        return out, {"chunks_loaded": int(loads), "traced_voxel_um": float(source.voxel_um)}
+
+
 def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
                settings: TraceSettings = PRESETS["accurate"], seed: int = 0,
                capacity: int = 512, n_outside: float | None = None) -> RayResult:
     """Trace ``beam`` (positions in voxels) through the voxel ``source`` (an ArraySource,
-    WoodSource or LatticeSource).
+    WoodSource or LatticeSource), faces handled as for every medium: the voxel backend in its
+    own unit, for tests and benchmarks that think in voxels (the tracer interface,
+    :func:`pipeline.optics.trace.trace`, is the same in µm).
 
     Parameters
     ----------
@@ -128,83 +219,11 @@ def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
     settings = settings.validate()
     if settings.voxel is None:
         raise ParameterError(f"`method` must be a voxel method to trace voxels, got {settings.method!r}")
-    Optics(n_wall, n_poly, n_outside, seed).validate()
-    vs = settings.voxel
-    cache = ChunkCache(source, capacity=capacity)
-    n = len(beam.ray_ids)
-    pos = beam.origins.astype(np.float64).copy()
-    dirs = beam.unit_directions()
-    vox = np.floor(pos).astype(np.int64)
-    vox[:, 1] = 0
-    pos[:, 1] = 0.0
-    status = np.full(n, NEEDS_CHUNK, np.int8)
-    events = np.zeros(n, np.int64)
-    path = np.zeros(n)
-    fallbacks = np.zeros((n, 3), np.int64)
-    request = vox // np.asarray(source.chunks)
-    normals = np.zeros((n, 4))
-    shape = np.asarray(source.shape, np.int64)
-    cs = cache.chunk_shape
-    method = K.PAPER if settings.method == "paper" else K.EXACT
-    reach = (int(math.ceil(vs.radius_vox + NEWTON_REACH)) + 2 if method == K.EXACT
-             else vs.svm_box)
-    scratch = window_scratch(vs.radius_vox)
-    # A ray starts in the phase of the voxel it enters; outside a finite volume it is "side".
-    cache.require(_unique_rows(request).tolist())
-    medium = np.zeros(n, np.uint8)
-    phases_at(cache.bits, cache.table, cache.box, cs, shape, vox, medium)
-    status[medium == OUTSIDE] = SIDE
-    medium[medium == OUTSIDE] = 0
-    n_entry = np.where(medium == 1, n_wall, n_poly)
-    if n_outside is not None:
-        tir = enter_from(dirs, n_entry, float(n_outside)) == REFLECTED
-        status[tir & (status == NEEDS_CHUNK)] = REFLECTED
-    entered = dirs.copy()
-    while True:
-        K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
-                beam.ray_ids, cache.bits, cache.masks, cache.table, cache.box, cs, shape, method,
-                vs.step_vox, vs.sigma_vox, vs.radius_vox, vs.newton,
-                vs.refit, n_wall, n_poly, settings.fresnel, np.uint64(seed), settings.max_events,
-                *scratch)
-        waiting = np.flatnonzero(status == NEEDS_CHUNK)
-        asking = np.flatnonzero(status == NEEDS_NORMAL)
-        if waiting.size == 0 and asking.size == 0:
-            break
-        if waiting.size:
-            # Keep every chunk that a live ray's normal window may read, or rays
-            # near chunk borders would evict each other's chunks forever.
-            live = (vox if method == K.EXACT else np.floor(pos).astype(np.int64))[status >= NEEDS_CHUNK]
-            # The chunks each live ray's window [x - reach, x + reach] spans.
-            keep = map(tuple, _chunks_of_boxes((live - reach) // cs, (live + reach) // cs).tolist())
-            cache.require(_unique_rows(request[waiting]).tolist(), keep=set(keep))
-        half = vs.svm_box // 2
-        for r in asking:
-            centre = pos[r]
-            lo = np.floor(centre).astype(np.int64) - (half - 1)
-            box = cache.voxels(lo, (vs.svm_box,) * 3)
-            w, ok = svm_normal(box, centre, lo)
-            normals[r, :3] = w
-            normals[r, 3] = 1.0 if ok else 0.0
-    loads = cache.loads
-    cache.release()  # its buffers serve the next trace of this process
-    exit_dirs = dirs.copy()
-    incident = entered
-    if settings.exit == "air":
-        done = status == TRANSMITTED
-        exit_dirs, tir = leave_into_air(dirs, np.where(medium == 1, n_wall, n_poly), done)
-        status[done & tir] = TIR_EXIT
-        # Undeflected, a ray keeps the phase and direction it entered with: it
-        # leaves along the beam's own direction in air (Snell both ways).
-        incident, blocked = leave_into_air(entered, n_entry, np.ones(n, bool))
-        incident[blocked] = np.nan
-    return RayResult(pos, dirs, exit_dirs, status.astype(np.int64), events, path, fallbacks,
-                     settings, loads, incident)
+    optics = Optics(n_wall, n_poly, n_outside, seed).validate()
+    return through_faces(VoxelInterior(source, settings, unit_um=source.voxel_um, capacity=capacity), beam.origins, beam.unit_directions(),
+                         beam.ray_ids, optics, settings)
 
 
-def trace_voxels(medium, beam: Beam, optics: Optics, settings: TraceSettings) -> RayResult:
-    """:func:`trace_beam` in µm: ``beam`` and the result's positions and path lengths in µm,
-    the volume ``medium`` of voxels ``medium.voxel_um`` on a side."""
-    v = medium.voxel_um
-    res = trace_beam(medium, Beam(beam.origins / v, beam.direction, beam.ray_ids), n_wall=optics.n_wall, n_poly=optics.n_poly,
-                     settings=settings, seed=optics.seed, n_outside=optics.n_outside)
-    return dataclasses.replace(res.scaled(v), voxel_um=v)
+def voxel_interior(medium, settings: TraceSettings) -> VoxelInterior:
+    """The voxel backend of ``medium`` for :func:`~pipeline.optics.trace.trace`, in µm."""
+    return VoxelInterior(medium, settings)

@@ -27,7 +27,7 @@ def trace_shard(m: Micro | None, scene: Scene, shard: Shard, *_after) -> int:
     wood chunks it generated (``m``: the wood's chunk store, None for a surface method or a
     reference lattice, voxelised as the rays reach it)."""
     from ..optics.media import wood_medium
-    from ..optics.rays import square_beam
+    from ..optics.rays import VOXEL_COUNTS, square_beam
     from ..optics.references import reference_medium
     from ..optics.trace import trace
 
@@ -42,8 +42,8 @@ def trace_shard(m: Micro | None, scene: Scene, shard: Shard, *_after) -> int:
     r = trace(medium, beam, scene.optics, scene.settings)
     generated = store.generated if store is not None else 0
     arrays = {"position": r.position, "direction": r.direction, "exit_direction": r.exit_direction,
-              "status": r.status, "events": r.events, "path": r.path, "fallbacks": r.fallbacks,
-              "chunks_generated": np.int64(generated)}
+              "status": r.status, "events": r.events, "path": r.path, "chunks_generated": np.int64(generated),
+              **{name: r.extras[name] for name in VOXEL_COUNTS if name in r.extras}}
     write_npz(shard.path, shard.record, arrays)
     return generated
 
@@ -51,7 +51,7 @@ def trace_shard(m: Micro | None, scene: Scene, shard: Shard, *_after) -> int:
 def load_rays(shards, scene: Scene):
     """Concatenate stored shards (:class:`Shard` entries) of ``scene`` into one RayResult [µm];
     and the wood chunks their traces generated."""
-    from ..optics.rays import RayResult
+    from ..optics.rays import VOXEL_COUNTS, RayResult
 
     parts = []
     for s in shards:
@@ -60,10 +60,21 @@ def load_rays(shards, scene: Scene):
             raise DamagedEntry(f"cache entry {s.path} was damaged during the run; run again to recompute it")
         parts.append(arrays)
     cat = {k: np.concatenate([p[k] for p in parts]) for k in
-           ("position", "direction", "exit_direction", "status", "events", "path", "fallbacks")}
-    voxel = scene.trace_voxel_um if scene.settings.medium_kind == "voxels" else None
-    return (RayResult(**cat, settings=scene.settings, voxel_um=voxel),
+           ("position", "direction", "exit_direction", "status", "events", "path")}
+    extras = {}
+    if scene.settings.medium_kind == "voxels":  # the voxel backend's counts (entries of old: "fallbacks")
+        extras = {name: np.concatenate([_counts(p, name) for p in parts]) for name in VOXEL_COUNTS
+                  if all(name in p or ("fallbacks" in p and name != "voxels_read") for p in parts)}
+    return (RayResult(**cat, settings=scene.settings, extras=extras),
             int(sum(p["chunks_generated"] for p in parts)))
+
+
+def _counts(arrays, name):
+    """The voxel count ``name`` of a stored shard; entries written before the counts had names
+    hold the first three as columns of "fallbacks"."""
+    from ..optics.rays import VOXEL_COUNTS
+
+    return arrays[name] if name in arrays else arrays["fallbacks"][:, VOXEL_COUNTS.index(name)]
 
 
 @task
