@@ -8,7 +8,10 @@ the maps use that as their centre line.  Between grid values haze is
 interpolated linearly, first along the thickness, then along |ΔRI| on each
 side of 0; the window's interval comes from the same interpolation of the
 haze interval's bounds (its upper bound crosses the limit first: the smallest
-|ΔRI| the data allow; its lower bound last: the largest).
+|ΔRI| the data allow; its lower bound last: the largest).  Below the smallest
+traced |ΔRI| the maps know only the straight line to ΔRI = 0, which the traced
+cells show is not how haze grows there: an edge or a value read on that line
+is marked as extrapolated and given no interval.
 """
 
 from __future__ import annotations
@@ -37,10 +40,11 @@ class Edge:
     value is then the map's last |ΔRI|, a lower bound)."""
 
     value: float
-    lo: float
+    lo: float  # nan when ``below``: no interval on a line the map did not trace
     hi: float
     beyond: bool = False
     below: bool = False  # the edge lies below the map's smallest |ΔRI|: on the line from ΔRI = 0
+    traced_min: float = float("nan")  # the map's smallest traced |ΔRI| on this side
 
 
 def _crossing(x: np.ndarray, y: np.ndarray, level: float) -> tuple[float, bool]:
@@ -84,8 +88,67 @@ def window(ds, thickness_mm: float, haze_max: float) -> dict[str, Edge]:
             y = np.concatenate([[0.0], at[name].values[pick]])
             edge[name] = _crossing(x, y, haze_max)
         e = edge["haze"][0]
-        out[side] = Edge(e, edge["haze_ci_upper"][0], edge["haze_ci_lower"][0], edge["haze"][1], e < x[1])
+        below = e < x[1]
+        lo, hi = (np.nan, np.nan) if below else (edge["haze_ci_upper"][0], edge["haze_ci_lower"][0])
+        out[side] = Edge(e, lo, hi, edge["haze"][1], below, float(x[1]))
     return out
+
+
+FORWARD = ("haze", "FWHM_R")  # what a map answers forwards, each with its _ci_lower and _ci_upper
+
+
+@dataclass(frozen=True)
+class Reading:
+    """Haze and FWHM_R of a map at one thickness and ΔRI: each (value, lower, upper), and how the
+    map knows it: "traced" (a cell), "interpolated" (between traced cells), "extrapolated" (between
+    ΔRI = 0 and the smallest traced |ΔRI|: no interval) or "matched" (ΔRI = 0: 0 exactly)."""
+
+    haze: tuple
+    fwhm_r: tuple
+    how: str
+
+
+def reading(ds, thickness_mm: float, delta_ri: float) -> Reading:
+    """What the map ``ds`` says of ``thickness_mm`` and ``delta_ri``: linear between its
+    thicknesses, then along ΔRI on the same side of 0 (value and bounds alike)."""
+    dri = ds["delta_ri"].values.astype(float)
+    if not dri.min() <= delta_ri <= dri.max():
+        raise ParameterError(f"`delta_ri` must lie within the design map's {dri.min():g} to {dri.max():g}, got "
+                             f"delta_ri={delta_ri:g} (add values to the map's `vary.delta_ri` and run `make design`)")
+    names = [n + s for n in FORWARD for s in ("", "_ci_lower", "_ci_upper")]
+    haze_at(ds, thickness_mm)  # the thickness's own check
+    t = ds["thickness"].values.astype(float)
+    at = ds[names].interp(thickness=thickness_mm) if thickness_mm not in t else ds[names].sel(thickness=thickness_mm)
+    if delta_ri == 0.0:
+        return Reading((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), "matched")
+    side = np.flatnonzero(np.sign(dri) == np.sign(delta_ri))
+    side = side[np.argsort(np.abs(dri[side]))]
+    x = np.abs(dri[side])
+    d = abs(delta_ri)
+    vals = {n: at[n].values[side].astype(float) for n in names}
+    if d < x[0]:  # on the line from ΔRI = 0: a value, no interval
+        f = d / x[0]
+        return Reading((f * vals["haze"][0], np.nan, np.nan), (f * vals["FWHM_R"][0], np.nan, np.nan), "extrapolated")
+    get = {n: float(np.interp(d, x, v)) for n, v in vals.items()}
+    how = "traced" if d in x and thickness_mm in t else "interpolated"
+    return Reading(*(tuple(get[n + s] for s in ("", "_ci_lower", "_ci_upper")) for n in FORWARD), how)
+
+
+def reading_line(ds, thickness_mm: float, delta_ri: float) -> str:
+    """:func:`reading` as one line: haze [%] and FWHM_R [°] with their 95 % intervals."""
+    r = reading(ds, thickness_mm, delta_ri)
+    est = ds.attrs.get("fwhm_estimator", "lorentz-mle")
+
+    def text(v, unit, scale):
+        if np.isnan(v[1]):
+            return f"{scale * v[0]:.3g}{unit}"
+        return f"{scale * v[0]:.3g}{unit} [{scale * v[1]:.3g}, {scale * v[2]:.3g}]"
+
+    how = {"traced": "a traced cell", "interpolated": "interpolated between traced cells",
+           "matched": "index-matched: nothing deviates",
+           "extrapolated": "extrapolated below the smallest traced |ΔRI| on the line from ΔRI = 0; no interval"}
+    return (f"haze {text(r.haze, ' %', 100.0)}, FWHM_R ({est}) {text(r.fwhm_r, '°', 1.0)} at {thickness_mm:g} mm, "
+            f"ΔRI {delta_ri:+g} ({how[r.how]})")
 
 
 def open_map(results: Path, preset: str, exit: str, path: str | None = None):
@@ -128,12 +191,17 @@ def regime_line(results: Path, preset: str, thickness_mm: float, haze_max: float
                      for side, sign, s in (("negative", "-", -1.0), ("positive", "+", 1.0)))
 
 
-def edge_text(e: Edge, sign: str, note: str = " (below the map's smallest |ΔRI|: on the line from ΔRI = 0)") -> str:
-    """One side of a window as text: the edge and its interval, ordered along ΔRI."""
+def edge_text(e: Edge, sign: str, short: bool = False) -> str:
+    """One side of a window as text: the edge and its interval, ordered along ΔRI; an edge below
+    the smallest traced |ΔRI| as extrapolated, with no interval (``short``: marked † only)."""
     if e.beyond:
         return f"beyond {sign}{e.value:.3g} (the map's edge)"
+    if e.below:
+        return (f"{sign}{e.value:.2g} †" if short else
+                f"{sign}{e.value:.2g} (extrapolated: below the smallest traced |ΔRI|, {e.traced_min:g}, on the "
+                "line from ΔRI = 0; no interval)")
     lo, hi = (e.lo, e.hi) if sign == "+" else (e.hi, e.lo)
-    return f"{sign}{e.value:.2g} [{sign}{lo:.2g}, {sign}{hi:.2g}]{note if e.below else ''}"
+    return f"{sign}{e.value:.2g} [{sign}{lo:.2g}, {sign}{hi:.2g}]"
 
 
 def _with_zero(ds, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -209,7 +277,8 @@ def plot_maps(maps: dict, path: Path, regime=None) -> Path:
 
 def plot_windows(maps: dict, path: Path, levels=HAZE_LEVELS) -> Path:
     """The largest |ΔRI| keeping haze below each level, against thickness, per map and side, with
-    its 95 % interval as a band."""
+    its 95 % interval as a band; edges extrapolated below the smallest traced |ΔRI| as open
+    circles, without a band."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -226,6 +295,11 @@ def plot_windows(maps: dict, path: Path, levels=HAZE_LEVELS) -> Path:
                 ax.plot(t, [np.nan if e.beyond else e.value for e in edges], style, color=colour,
                         label=f"{name}, ΔRI {'>' if side == 'positive' else '<'} 0")
                 ax.fill_between(t, [e.lo for e in edges], [e.hi for e in edges], color=colour, alpha=0.12)
+                far = [(d, e.value) for d, e in zip(t, edges) if e.below]  # extrapolated: open, no band
+                if far:
+                    ax.scatter(*zip(*far), s=22, facecolors="white", edgecolors=colour, zorder=3)
+        ax.scatter([], [], s=22, facecolors="white", edgecolors="k",
+                   label="extrapolated below the smallest traced |ΔRI| (no interval)")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("thickness [mm]")
@@ -242,10 +316,35 @@ def plot_windows(maps: dict, path: Path, levels=HAZE_LEVELS) -> Path:
 
 def window_table(maps: dict, thicknesses=(0.25, 1.0, 2.0), limit: float = 0.1) -> list[str]:
     """Markdown: per map and thickness, the ΔRI window keeping haze <= ``limit``, with intervals."""
-    lines = [f"| map | thickness (mm) | largest ΔRI < 0 for haze ≤ {100 * limit:g} % [95 % CI] | "
+    lines = [f"| map | thickness [mm] | largest ΔRI < 0 for haze ≤ {100 * limit:g} % [95 % CI] | "
              f"largest ΔRI > 0 [95 % CI] |", "|---|---|---|---|"]
     for name, ds in maps.items():
         for d in thicknesses:
             w = window(ds, d, limit)
-            lines.append(f"| {name} | {d:g} | {edge_text(w['negative'], '-', ' †')} | {edge_text(w['positive'], '+', ' †')} |")
+            lines.append(f"| {name} | {d:g} | {edge_text(w['negative'], '-', True)} | "
+                         f"{edge_text(w['positive'], '+', True)} |")
+    return lines
+
+
+def glance_tables(maps: dict) -> list[str]:
+    """Markdown for a designer, per species: haze and FWHM_R in air and inside the sample over the
+    traced thickness × ΔRI cells of its two maps (``maps``: by name of MAPS)."""
+    lines = []
+    for preset in ("birch", "balsa"):
+        inside, air = maps.get(preset), maps.get(map_name(preset, "air"))
+        if inside is None or air is None:
+            continue
+        dri = np.sort(inside["delta_ri"].values.astype(float))
+        est = inside.attrs.get("fwhm_estimator", "lorentz-mle")
+        lines += [f"**{preset}**: haze in air / inside [%]; FWHM_R ({est}) in air / inside [°]", "",
+                  "| thickness [mm] | " + " | ".join(f"ΔRI {d:+g}" for d in dri) + " |",
+                  "|---|" + "---|" * len(dri)]
+        for t in inside["thickness"].values.astype(float):
+            cells = []
+            for d in dri:
+                a, i = (m.sel(thickness=t, delta_ri=d) for m in (air, inside))
+                cells.append(f"{100 * float(a.haze):.0f} / {100 * float(i.haze):.0f} %; "
+                             f"{float(a.FWHM_R):.2g} / {float(i.FWHM_R):.2g}°")
+            lines.append(f"| {t:g} | " + " | ".join(cells) + " |")
+        lines.append("")
     return lines

@@ -19,7 +19,7 @@ from .analysis import HAZE_ANGLE_DEG
 from .effects import (N_BOOT, TABLE1, TRADEOFF_TARGETS, Effect, all_effects_of, camera_rows, cheapest_meeting,
                       experiment_rows, fibre_tip_rows, fine_voxel_rows, load_table1, method_rows, reference_index,
                       setting_label, study_dimension, table1_rows)
-from .design import MAPS, window_table
+from .design import MAPS, glance_tables, window_table
 from .effects import p_value
 from .figures import table1_structures, traced_voxel, value_label
 from .publish import open_dataset
@@ -179,6 +179,20 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
         "(camera), `results/tradeoff.zarr` (speed against accuracy), `results/bench.json` (costs). "
         "Figures: `make figures` → `results/figures/`.")
     add("")
+    maps = {n: open_dataset(base / "design" / f"{n}.zarr") for n in MAPS if (base / "design" / f"{n}.zarr").exists()}
+    if len(maps) == len(MAPS):
+        d0 = next(iter(maps.values()))
+        add("## At a glance: haze and FWHM_R of TW")
+        add("")
+        add(f"What a sample scatters, from the design maps (`make design`, `exact`, {d0.attrs['realisations']} woods × "
+            f"{d0.attrs['rays']} rays a cell, beam at normal incidence; ΔRI = wall − polymer index, polymer "
+            f"{float(json.loads(d0.attrs['scenes'])[0]['ri_polymer']):g}). Each cell: in air (what a "
+            "hazemeter sees) / inside the sample (the paper's angles). Haze: share of the light deviated by more "
+            "than 2.5°. Between cells, and with intervals, `twray design --thickness-mm T --delta-ri D` reads "
+            "the maps; [Design maps](#design-maps-how-well-must-the-polymer-match) gives the ΔRI window for a "
+            "haze limit.")
+        add("")
+        L.extend(glance_tables(maps))
     add(f"Table 1 was traced with twray {s1.attrs['twray_version']} (tracer version {s1.attrs['tracer_version']}, "
         f"generator version {s1.attrs['generator_version']}) at scale `{s1.attrs['scale']}`: "
         f"{s1.attrs['rays']} rays per value on each of {woods_text(woods, target, first_seed)}{target_status(tables)}, "
@@ -351,17 +365,16 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     else:
         add(f"The images above are traced with `{method}`.")
         add("")
-    maps = {n: open_dataset(base / "design" / f"{n}.zarr") for n in MAPS if (base / "design" / f"{n}.zarr").exists()}
     if len(maps) == len(MAPS):
-        d0 = next(iter(maps.values()))
         add("## Design maps: how well must the polymer match?")
         add("")
         add(f"Haze and FWHM_R over thickness × ΔRI (`make design`, `exact`, {d0.attrs['realisations']} woods × "
             f"{d0.attrs['rays']} rays a cell; docs/methods.md#design-maps). At ΔRI = 0 haze is 0 exactly. The "
             "largest |ΔRI| that keeps haze at or below 10 %, interpolated on the maps (`twray design` answers "
-            "the same for any thickness and limit). † marks an edge below the map's smallest |ΔRI| "
-            f"({float(abs(d0['delta_ri']).min()):g}) it rests on the line from haze 0 at ΔRI = 0, an assumption: "
-            "add smaller values to the maps' `vary.delta_ri` (only the new cells are traced) to measure it.")
+            "the same for any thickness and limit). † marks an edge below the map's smallest traced |ΔRI| "
+            f"({float(abs(d0['delta_ri']).min()):g}): it is read on the straight line from haze 0 at ΔRI = 0, which "
+            "no cell traced, so it has no interval; add smaller values to the maps' `vary.delta_ri` (only the new cells are traced) to "
+            "measure it.")
         add("")
         L.extend(window_table(maps))
         add("")

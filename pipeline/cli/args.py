@@ -74,9 +74,10 @@ EXAMPLES = {
     "design": ("How well must the polymer match the wall? From a design map (a study over thickness × ΔRI, "
                "`make design`), the range of ΔRI that keeps haze at or below a limit at a given thickness, "
                "with its 95 % interval (wood-to-wood variation included), interpolated between the map's "
-               "values.",
+               "values; or, with --delta-ri, haze and FWHM_R at one ΔRI, inside the sample and in air.",
                ["twray design --preset birch --thickness-mm 1 --haze-max 0.2",
                 "twray design --preset balsa --exit air --thickness-mm 0.5 --haze-max 0.1",
+                "twray design --preset birch --thickness-mm 1 --delta-ri 0.005",
                 "twray design --map results/quick/design/birch.zarr --thickness-mm 2 --haze-max 0.5"]),
     "cache": ("List, verify or clean the cache of studies and the camera.",
               ["twray cache ls", "twray cache verify --remove",

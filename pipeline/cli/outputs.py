@@ -104,12 +104,15 @@ def add_figures(sub):
 
 
 def add_design(sub):
-    p = subparser(sub, "design", help="the ΔRI window that keeps haze below a limit, from a design map")
+    p = subparser(sub, "design", help="the ΔRI window that keeps haze below a limit, or haze and FWHM_R at one "
+                                      "ΔRI, from the design maps")
     p.add_argument("--preset", default="birch", choices=("birch", "balsa"), help="species (default birch)")
     p.add_argument("--exit", default="internal", choices=("internal", "air"),
                    help="haze of the angles inside the sample (the paper's) or in air (a hazemeter's)")
     p.add_argument("--thickness-mm", required=True, help="sample thickness [mm], within the map's")
-    p.add_argument("--haze-max", required=True, help="the haze limit, a fraction (0.2: 20 %%)")
+    p.add_argument("--haze-max", default=None, help="the haze limit, a fraction (0.2: 20 %%): the ΔRI window")
+    p.add_argument("--delta-ri", default=None, help="wall minus polymer index: haze and FWHM_R there, inside the "
+                                                    "sample and in air (both maps, unless --map names one)")
     p.add_argument("--results", default="results/paper", help="where design/<map>.zarr is (default results/paper)")
     p.add_argument("--map", default=None, help="a design map Dataset (default: the preset's and exit's under --results)")
     p.set_defaults(func=cmd_design)
@@ -118,17 +121,31 @@ def add_design(sub):
 def cmd_design(args) -> int:
     import json
 
-    from ..design import open_map, regime_line, window_line
+    from ..design import map_name, open_map, reading_line, regime_line, window_line
     from .args import number
 
     thickness = number(args.thickness_mm, "thickness_mm")
-    haze_max = number(args.haze_max, "haze_max")
-    ds = open_map(Path(args.results), args.preset, args.exit, args.map)
-    line = window_line(ds, thickness, haze_max)
+    if args.haze_max is None and args.delta_ri is None:
+        raise ParameterError("`haze_max` or `delta_ri` must be given: the ΔRI window below a haze limit, or haze "
+                             "and FWHM_R at one ΔRI (e.g. --haze-max 0.2, --delta-ri 0.005)")
+    results = Path(args.results)
+    if args.delta_ri is not None:
+        delta_ri = number(args.delta_ri, "delta_ri")
+        exits = (args.exit,) if args.map else ("internal", "air")
+        for exit in exits:
+            if args.map is None and len(exits) > 1 and exit != args.exit and not (
+                    results / "design" / f"{map_name(args.preset, exit)}.zarr").exists():
+                print(f"{args.preset}, angles {exit}: no map (run `make design`)")
+                continue
+            ds = open_map(results, args.preset, exit, args.map)
+            print(f"{ds.attrs['title']}: {reading_line(ds, thickness, delta_ri)}")
+    if args.haze_max is not None:
+        haze_max = number(args.haze_max, "haze_max")
+        ds = open_map(results, args.preset, args.exit, args.map)
+        print(f"{ds.attrs['title']}: {window_line(ds, thickness, haze_max)}")
+        print(f"  ray optics at this window's edges: {regime_line(results, args.preset, thickness, haze_max, ds, args.exit)}")
     method = json.loads(ds.attrs["trace_settings"])["method"]
-    print(f"{ds.attrs['title']}: {line}")
-    print(f"  ray optics at this window's edges: {regime_line(Path(args.results), args.preset, thickness, haze_max, ds, args.exit)}")
-    print(f"  interpolated on {args.map or Path(args.results) / 'design'} ({ds.sizes['thickness']} thicknesses × "
+    print(f"  interpolated on {args.map or results / 'design'} ({ds.sizes['thickness']} thicknesses × "
           f"{ds.sizes['delta_ri']} ΔRI, {ds.attrs['realisations']} woods × {ds.attrs['rays']} rays per cell, "
           f"method {method}, scale {ds.attrs['scale']})")
     return 0
