@@ -327,7 +327,7 @@ def window_table(maps: dict, thicknesses=(0.25, 1.0, 2.0), limit: float = 0.1) -
 
 
 def glance_tables(maps: dict) -> list[str]:
-    """Markdown for a designer, per species: haze and FWHM_R in air and inside the sample over the
+    """Markdown for a designer, per species: haze, then FWHM_R, in air / inside the sample, over the
     traced thickness × ΔRI cells of its two maps (``maps``: by name of MAPS)."""
     lines = []
     for preset in ("birch", "balsa"):
@@ -336,15 +336,14 @@ def glance_tables(maps: dict) -> list[str]:
             continue
         dri = np.sort(inside["delta_ri"].values.astype(float))
         est = inside.attrs.get("fwhm_estimator", "lorentz-mle")
-        lines += [f"**{preset}**: haze in air / inside [%]; FWHM_R ({est}) in air / inside [°]", "",
-                  "| thickness [mm] | " + " | ".join(f"ΔRI {d:+g}" for d in dri) + " |",
-                  "|---|" + "---|" * len(dri)]
-        for t in inside["thickness"].values.astype(float):
-            cells = []
-            for d in dri:
-                a, i = (m.sel(thickness=t, delta_ri=d) for m in (air, inside))
-                cells.append(f"{100 * float(a.haze):.0f} / {100 * float(i.haze):.0f} %; "
-                             f"{float(a.FWHM_R):.2g} / {float(i.FWHM_R):.2g}°")
-            lines.append(f"| {t:g} | " + " | ".join(cells) + " |")
-        lines.append("")
+        for name, what, scale, fmt in (("haze", "haze [%]", 100.0, "{:.0f}"),
+                                       ("FWHM_R", f"FWHM_R ({est}) [°]", 1.0, "{:.2g}")):
+            lines += [f"**{preset}, {what}**, in air / inside", "",
+                      "| thickness [mm] \\ ΔRI | " + " | ".join(f"{d:+g}" for d in dri) + " |",
+                      "|---|" + "---|" * len(dri)]
+            for t in inside["thickness"].values.astype(float):
+                cells = [fmt.format(scale * float(air[name].sel(thickness=t, delta_ri=d))) + "/"
+                         + fmt.format(scale * float(inside[name].sel(thickness=t, delta_ri=d))) for d in dri]
+                lines.append(f"| {t:g} | " + " | ".join(cells) + " |")
+            lines.append("")
     return lines

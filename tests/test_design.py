@@ -94,3 +94,16 @@ def test_twray_design_answers_forwards_inside_and_in_air(tmp_path, capsys):
     assert err.count("\n") == 0 and "`delta_ri` must lie within the design map's -0.03 to 0.03" in err
     assert main(["design", "--results", str(tmp_path), "--thickness-mm", "1"]) == 2
     assert "`haze_max` or `delta_ri` must be given" in capsys.readouterr().err
+
+
+def test_the_report_opens_with_every_traced_cell_of_both_maps_in_air_and_inside():
+    from pipeline.design import glance_tables
+
+    inside, air = linear_map(), linear_map(slope_pos=20.0)
+    lines = glance_tables({"birch": inside, "birch-air": air})
+    assert lines[0] == "**birch, haze [%]**, in air / inside"
+    assert lines[2] == "| thickness [mm] \\ ΔRI | -0.03 | -0.01 | -0.002 | +0.002 | +0.01 | +0.03 |"
+    # 1 mm: haze = slope · |ΔRI| (inside 10, in air 20 per unit ΔRI on the positive side)
+    assert lines[5] == "| 1 | 60/60 | 20/20 | 4/4 | 4/2 | 20/10 | 60/30 |"
+    fw = lines.index("**birch, FWHM_R (lorentz-mle) [°]**, in air / inside")
+    assert lines[fw + 5] == "| 1 | 60/60 | 20/20 | 4/4 | 4/2 | 20/10 | 60/30 |"  # FWHM_R = 100 · haze
