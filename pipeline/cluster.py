@@ -117,16 +117,17 @@ def local_workers(command: str, workers: int | None) -> int:
 
 
 @contextlib.contextmanager
-def cluster(command: str, **where):
+def cluster(command: str, quiet: bool = False, **where):
     """A Dask client for ``command`` ("study" or "camera"; ``where``: :func:`graph_client`'s
-    options), printing its dashboard, closed with its local cluster."""
+    options), printing its dashboard unless ``quiet``, closed with its local cluster."""
     from . import runlog
 
     runlog.route_dask_logs(runlog.log_file())  # the nannies and scheduler of a local cluster live here
     client, local = graph_client(command, **where)
     try:
         runlog.quiet_workers(client)
-        print(f"twray {command}: dashboard {client.dashboard_link}; logs in {runlog.log_file()}", file=sys.stderr)
+        if not quiet:
+            print(f"twray {command}: dashboard {client.dashboard_link}; logs in {runlog.log_file()}", file=sys.stderr)
         yield client
     finally:
         client.close()

@@ -223,6 +223,13 @@ def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: 
     return Estimate(cpu, memory, stored_bytes(voxels, voxel_um, params) if store else 0.0)
 
 
+def shard_estimate(scene, rays: int) -> Estimate:
+    """One shard of ``rays`` rays of a study's ``scene`` traced, its rays stored."""
+    return trace_estimate(rays=rays, beam_um=scene.beam_um, thickness_um=scene.thickness_um,
+                          voxel_um=scene.trace_voxel_um, pitch_um=scene.pitch_um, method=scene.settings.method,
+                          wood=False, store=True, generated=scene.wood is not None, params=scene.wood)
+
+
 def study_estimate(scenes, *, shard_rays: int) -> Estimate:
     """A study's scenes: each wood generated once (on disk), each scene's rays traced by shards and
     written with their summaries, pools and one Dataset."""
@@ -236,9 +243,7 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
         if s.settings.medium_kind == "voxels" and s.wood is not None:  # surfaces and lattices store no wood
             key = (repr(s.wood), s.seed, voxel)
             woods[key] = (max(woods.get(key, (0.0,))[0], wood_voxels(s.beam_um, s.thickness_um, voxel)), voxel, s.wood)
-        shard = trace_estimate(rays=min(s.rays, shard_rays), beam_um=s.beam_um, thickness_um=s.thickness_um,
-                               voxel_um=voxel, pitch_um=s.pitch_um, method=s.settings.method,
-                               wood=False, store=True, generated=s.wood is not None, params=s.wood)
+        shard = shard_estimate(s, min(s.rays, shard_rays))
         n_shards = math.ceil(s.rays / shard_rays)
         # A surface scene's region is built by each shard, but its distortion tiles (nearly all of
         # its cost) are cached in the worker and shared by every scene of the same wood (Table 1's

@@ -410,11 +410,14 @@ class Grid:
     origin_um: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
+MIN_VOXEL_UM = 0.01  # 10 nm: finer resolves nothing of the model (its phase is sampled at 0.04 µm by the waves)
+
+
 def check_voxel(voxel_um, params: WoodParams) -> float:
-    """``voxel_um`` if it samples the wood of ``params``: > 0 and at most half the wall (at least
-    two voxels across a wall); a ParameterError naming the rule otherwise."""
-    if not (isinstance(voxel_um, (int, float)) and math.isfinite(voxel_um) and voxel_um > 0):
-        raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel_um!r}")
+    """``voxel_um`` if it samples the wood of ``params``: at least MIN_VOXEL_UM and at most half the
+    wall (at least two voxels across a wall); a ParameterError naming the rule otherwise."""
+    if not (isinstance(voxel_um, (int, float)) and math.isfinite(voxel_um) and voxel_um >= MIN_VOXEL_UM):
+        raise ParameterError(f"`voxel_um` must be >= {MIN_VOXEL_UM:g} µm, got voxel_um={voxel_um!r}")
     thinnest = params.wall_thickness_um
     if voxel_um > thinnest / 2:
         raise ParameterError(

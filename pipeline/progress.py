@@ -28,16 +28,39 @@ def mode(quiet: bool) -> str:
     return "bar" if sys.stdout.isatty() else "lines"
 
 
-def _eta(done: int, total: int, elapsed: float) -> str:
-    if done == 0 or done >= total:
-        return ""
-    left = elapsed / done * (total - done)
-    return f", about {left:.0f} s left" if left < 120 else f", about {left / 60:.0f} min left"
+WARMUP = 0.05  # no time left is said before this share of the work is done (a cold start compiles first)
 
 
-def line(label: str, done: int, total: int, elapsed: float) -> str:
-    rate = done / elapsed if elapsed > 0 else 0.0
-    return f"{label}: {done}/{total} tasks done ({rate:.2g} per s){_eta(done, total, elapsed)}"
+class Pace:
+    """The time left of a run whose work is ``total`` (the estimate's, or a count of tasks): at the
+    rate measured since work was first seen done, and only once a share WARMUP of it is done, so
+    that the workers' start (compiling kernels, building the first regions) does not count as the
+    pace of the work."""
+
+    def __init__(self, total: float):
+        self.total = float(total)
+        self.first = None  # (time, work done) when work was first seen done
+
+    def left(self, done: float, now: float) -> float | None:
+        if not 0.0 < done < self.total:
+            return None
+        if self.first is None:
+            self.first = (now, done)
+            return None
+        t0, d0 = self.first
+        if done < WARMUP * self.total or now <= t0 or done <= d0:
+            return None
+        return (self.total - done) * (now - t0) / (done - d0)
+
+
+def line(label: str, done: int, total: int, share: float | None = None, left: float | None = None) -> str:
+    """``label``: tasks done, the share of the estimated work done (when weighed), the time left."""
+    out = f"{label}: {done}/{total} tasks done"
+    if share is not None:
+        out += f", {100.0 * share:.0f} % of the estimated work"
+    if left is not None:
+        out += f", about {left:.0f} s left" if left < 120 else f", about {left / 60:.0f} min left"
+    return out
 
 
 def _pending(dask_scheduler, keys) -> tuple[list, list]:
@@ -53,8 +76,11 @@ def _pending(dask_scheduler, keys) -> tuple[list, list]:
     return held, finished
 
 
-def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRESS_EVERY_S) -> None:
-    """Show the progress of ``futures`` (whose graphs hold the task ``keys``) until they finish."""
+def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRESS_EVERY_S,
+           weights: dict | None = None) -> None:
+    """Show the progress of ``futures`` (whose graphs hold the task ``keys``) until they finish;
+    ``weights``: the estimated CPU-seconds of some keys (the others weigh nothing), from which the
+    share of the work done and the time left are told (else from the count of tasks)."""
     from distributed import wait
 
     if how == "bar":
@@ -65,9 +91,13 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
     if how != "lines":
         return
     keys = list(keys)
+    weight = {k: 1.0 for k in keys}
+    if weights and sum(weights.get(k, 0.0) for k in keys) > 0.0:
+        weight = {k: float(weights.get(k, 0.0)) for k in keys}
+    pace = Pace(sum(weight.values()))
     seen: set = set()
     done_keys: set = set()
-    t0 = last = time.perf_counter()
+    last = time.perf_counter()
     while True:
         try:
             wait(futures, timeout=min(every_s, POLL_S))
@@ -85,9 +115,10 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
         done_keys.update(ended)
         done_keys.update(seen.difference(held))
         seen.update(held)
-        done = len(done_keys)
-        print(line(label, done, len(keys), last - t0), file=sys.stderr, flush=True)
-    print(line(label, len(keys), len(keys), time.perf_counter() - t0), file=sys.stderr, flush=True)
+        work = sum(weight[k] for k in done_keys)
+        print(line(label, len(done_keys), len(keys), work / pace.total if weights else None, pace.left(work, last)),
+              file=sys.stderr, flush=True)
+    print(line(label, len(keys), len(keys)), file=sys.stderr, flush=True)
 
 
 def graph_keys(collections) -> list:
@@ -115,18 +146,18 @@ class LocalLines:
         class _Lines(Callback):
             def _start_state(self, dsk, state):
                 self.total = sum(len(state[k]) for k in ("ready", "waiting", "running", "finished"))
-                self.done, self.t0, self.last = 0, time.perf_counter(), time.perf_counter()
+                self.done, self.last, self.pace = 0, time.perf_counter(), Pace(self.total)
 
             def _posttask(self, key, result, dsk, state, worker_id):
                 self.done += 1
                 now = time.perf_counter()
                 if now - self.last >= every_s and self.done < self.total:  # the last line: _finish
                     self.last = now
-                    print(line(label, self.done, self.total, now - self.t0), file=sys.stderr, flush=True)
+                    print(line(label, self.done, self.total, None, self.pace.left(self.done, now)), file=sys.stderr,
+                          flush=True)
 
             def _finish(self, dsk, state, errored):
                 if not errored:
-                    print(line(label, self.total, self.total, time.perf_counter() - self.t0), file=sys.stderr,
-                          flush=True)
+                    print(line(label, self.total, self.total), file=sys.stderr, flush=True)
 
         return _Lines()

@@ -22,7 +22,7 @@ from pathlib import Path
 FORMAT = "%(asctime)s pid %(process)d %(name)s %(levelname)s: %(message)s"
 TASK_NOTE = "twray task: "  # the note a failing task adds to its exception: the task's key
 FAULT_MEMORY_ENV = "TWRAY_FAULT_MEMORY_MB"  # fault tests: each graph task first holds this much memory
-_state = {"path": None}
+_state = {"path": None, "log_failed": None}
 
 
 class RunFailed(Exception):
@@ -38,12 +38,32 @@ def log_file() -> Path:
     return _state["path"] or _temp_log()
 
 
+def _log_failed(exc: BaseException, path) -> None:
+    """Remember the first failure to write the log (the error line says it once)."""
+    if _state["log_failed"] is None:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else type(exc).__name__
+        _state["log_failed"] = f"the log {path} could not be written ({why})"
+
+
 class _LazyFile(logging.FileHandler):
-    """A log file made, with its folder, on the first record only (nothing logged, nothing written)."""
+    """A log file made, with its folder, on the first record only (nothing logged, nothing written).
+    A record it cannot write is dropped silently (a full disk: Python's logging would print a
+    traceback to the terminal for every record); the failure is remembered for the error line."""
 
     def _open(self):
         Path(self.baseFilename).parent.mkdir(parents=True, exist_ok=True)
         return super()._open()
+
+    def handleError(self, record):
+        import sys
+
+        _log_failed(sys.exc_info()[1], self.baseFilename)
+
+    def close(self):
+        try:
+            super().close()
+        except OSError as exc:  # the last records' flush, on a full disk
+            _log_failed(exc, self.baseFilename)
 
 
 def _file_handler(path: Path) -> logging.Handler:
@@ -69,6 +89,7 @@ def route_dask_logs(path: Path) -> None:
 def start(cache=None) -> Path:
     """Log this run under ``cache``/logs (None: the temporary folder) and send Dask's logs there;
     returns the file.  Every command starts here."""
+    _state["log_failed"] = None
     _state["path"] = None if cache is None else (Path(cache) / "logs" / f"twray-{time.strftime('%Y%m%d')}.log").absolute()
     route_dask_logs(log_file())
     return log_file()
@@ -94,19 +115,28 @@ def quiet_workers(client) -> None:
     client.register_plugin(plugin, name=QuietWorkers.name)
 
 
-def record(exc: BaseException, what: str = "") -> Path:
-    """Append ``exc``'s traceback to the log file; returns the file."""
+def record(exc: BaseException, what: str = "") -> Path | None:
+    """Append ``exc``'s traceback to the log file (the temporary folder's when that fails); returns
+    the file, or None when neither could take it."""
     text = (f"{time.strftime('%Y-%m-%d %H:%M:%S')} pid {os.getpid()} twray ERROR: {what or 'failure'}\n"
             + "".join(traceback.format_exception(exc)))
-    for path in (log_file(), _temp_log()):  # the disk that failed may hold the log too
+    for path in dict.fromkeys((log_file(), _temp_log())):  # the disk that failed may hold the log too
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             with open(path, "a") as f:
                 f.write(text)
             return path
-        except OSError:
-            continue
-    return path
+        except OSError as err:
+            _log_failed(err, path)
+    return None
+
+
+def traceback_note(exc: BaseException, what: str = "") -> str:
+    """``exc``'s traceback appended to the log, as the end of an error line: where it is, and once
+    whether a log could not be written."""
+    path = record(exc, what)
+    note = f"traceback in {path}" if path is not None else "no traceback kept"
+    return note if _state["log_failed"] is None else f"{note}; {_state['log_failed']}"
 
 
 def note_task(exc: BaseException) -> None:
@@ -164,15 +194,15 @@ def os_error_line(exc: OSError) -> str:
     return f"{exc.strerror or exc} ({where})"
 
 
-def gather_graph(client, futures, keys, label: str, how: str, labels: dict) -> list:
+def gather_graph(client, futures, keys, label: str, how: str, labels: dict, weights: dict | None = None) -> list:
     """The results of ``futures`` (computed from graphs of the task ``keys``), followed with
-    progress ``how`` (:func:`pipeline.progress.follow`).  A failed task ends the run: its other
+    progress ``how`` (:func:`pipeline.progress.follow`, its ``weights`` the tasks' estimated work).  A failed task ends the run: its other
     tasks are cancelled (a rerun on the same scheduler submits them anew) and the failure is
     raised as :func:`task_failure`'s one line, named by ``labels``."""
     from .progress import follow
 
     try:
-        follow(client, futures, keys, label, how)
+        follow(client, futures, keys, label, how, weights=weights)
         return client.gather(futures)
     except Exception as exc:
         with contextlib.suppress(Exception):
@@ -190,7 +220,7 @@ def task_failure(exc: BaseException, labels: dict) -> RunFailed | BaseException:
         return exc
     key = task_key(exc)
     what = labels.get(key, str(key)) if key is not None else "a task"
-    log = record(exc, what)
+    log = traceback_note(exc, what)
     if type(exc).__name__ == "KilledWorker":
         line = (f"a worker died running {what} (killed, or over its memory limit): run again (finished entries "
                 "are kept) with fewer --workers or more memory per worker (--memory-limit)")
@@ -204,4 +234,4 @@ def task_failure(exc: BaseException, labels: dict) -> RunFailed | BaseException:
         line = f"{os_error_line(exc)} [{what}]"
     else:
         line = f"{what} failed: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-    return RunFailed(f"{line}; traceback in {log}")
+    return RunFailed(f"{line}; {log}")

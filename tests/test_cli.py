@@ -79,7 +79,7 @@ BAD = [
     (["--size-um", "0,150,100"], "size_um", "> 0"),
     (["--size-um", "150,150"], "size_um", "three"),
     (["--voxel-um", "1.5"], "voxel_um", "wall_thickness_um/2"),
-    (["--voxel-um", "-0.5"], "voxel_um", "> 0"),
+    (["--voxel-um", "-0.5"], "voxel_um", ">= 0.01"),
     (["--seed", "-1"], "seed", ">= 0"),
     (["--seed", "one"], "seed", "integer"),
     (["--chunks", "0,64,64"], "chunks", "> 0"),
@@ -91,7 +91,8 @@ BAD = [
     (["--set", "fibre_tip_um=100", "--set", "end_plates=false"], "fibre_tip_um", "end_plates is false"),
     (["--preset", "balsa", "--set", "fibre_tip_um=100"], "fibre_tip_um", "cell_shape polygon"),
     (["--voxel-um", "nan"], "voxel_um", "finite"),
-    (["--voxel-um", "1e-6"], "size_um", "at most 1e13 voxels"),
+    (["--voxel-um", "1e-6"], "voxel_um", ">= 0.01 µm"),
+    (["--size-um", "1e6,1e6,1e6"], "size_um", "at most 1e13 voxels"),
     (["--size-um", "10000000,150,100"], "generate", "add --yes (with make: YES=1) to run it"),  # a 10 m sample: 22 CPU-h
 ]
 

@@ -97,6 +97,55 @@ def test_a_full_disk_is_one_line_naming_the_path_and_the_fix_and_the_rerun_is_wh
     assert_same(tmp_path, clean[method])
 
 
+def test_a_log_on_a_full_disk_prints_nothing_of_its_own_and_is_named_once(tmp_path, capsys):
+    """A log handler whose disk is full (/dev/full: every write fails with ENOSPC) drops its records
+    without a word on the terminal (Python's logging prints a traceback for each); the error line
+    names the log once, and the traceback goes to the temporary folder's log."""
+    import logging
+
+    from pipeline import runlog
+
+    runlog.start(tmp_path / "c")
+    runlog.log_file().parent.mkdir(parents=True)
+    runlog.log_file().symlink_to("/dev/full")
+    runlog.route_dask_logs(runlog.log_file())
+    for _ in range(10):
+        logging.getLogger("distributed.worker").warning("a record the full disk cannot take")
+    assert capsys.readouterr().err == ""
+    try:
+        raise OSError(28, "No space left on device", str(tmp_path / "c" / "rays" / "x.npz"))
+    except OSError as exc:
+        note = runlog.traceback_note(exc)
+    assert note.startswith(f"traceback in {runlog._temp_log()}; the log {runlog.log_file()} could not be written "
+                           "(No space left on device)"), note
+    runlog.start()
+
+
+def test_a_full_disk_under_the_cache_and_its_log_is_at_most_three_lines(tmp_path, monkeypatch, capsys, clean):
+    """The cache's disk fills mid-run and the log (in the cache) sits on the same full disk: at most
+    three lines on stderr, the cache path and the log named, nothing half-written, and the rerun
+    after space is freed equals an undisturbed run."""
+    import time as _time
+
+    path = study(tmp_path)
+    log = tmp_path / "c" / "logs" / f"twray-{_time.strftime('%Y%m%d')}.log"
+    log.parent.mkdir(parents=True)
+    log.symlink_to("/dev/full")
+    monkeypatch.setenv(FAULT_ENV, "rays:0")
+    assert main(args(path, tmp_path, "--quiet")) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) <= 3 and "Logging error" not in err and "Traceback" not in err, err
+    assert "dashboard" not in err  # --quiet: no dashboard line either
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("twray: error: no space left writing ") and "/c/rays/" in line
+    assert f"the log {log} could not be written (No space left on device)" in line, line
+    log.unlink()
+    assert_nothing_half_written(tmp_path, capsys)
+    monkeypatch.delenv(FAULT_ENV)
+    assert main(args(path, tmp_path)) == 0
+    assert_same(tmp_path, clean["exact"])
+
+
 def test_a_worker_killed_mid_task_is_replaced_and_the_numbers_are_the_same(tmp_path, capsys, clean):
     from distributed import Client, LocalCluster
 

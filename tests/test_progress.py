@@ -11,9 +11,9 @@ import time
 import dask
 import pytest
 
-from pipeline.progress import LocalLines, _every_s, follow, graph_keys, line, mode
+from pipeline.progress import WARMUP, LocalLines, Pace, _every_s, follow, graph_keys, line, mode
 
-LINE = re.compile(r"^(\w+): (\d+)/(\d+) tasks done \([\d.e+-]+ per s\)(, about \d+ (s|min) left)?$")
+LINE = re.compile(r"^(\w+): (\d+)/(\d+) tasks done(, \d+ % of the estimated work)?(, about \d+ (s|min) left)?$")
 
 
 # ------------------------------------------------------------------ which display
@@ -46,19 +46,26 @@ def test_the_line_period_is_ten_seconds_unless_the_environment_gives_a_positive_
 
 
 # ------------------------------------------------------------------ the line
-def test_a_line_gives_tasks_done_the_rate_and_the_time_left_at_that_rate():
-    assert line("study", 3, 10, 6.0) == "study: 3/10 tasks done (0.5 per s), about 14 s left"
-    # 1 task in 12 s, 99 to go: 1188 s, shown in minutes from 2 minutes on.
-    assert line("study", 1, 100, 12.0) == "study: 1/100 tasks done (0.083 per s), about 20 min left"
-    assert line("study", 30, 31, 59.0) == "study: 30/31 tasks done (0.51 per s), about 2 s left"
-    assert line("trace", 1, 2, 119.0) == "trace: 1/2 tasks done (0.0084 per s), about 119 s left"
-    assert line("trace", 1, 2, 120.0) == "trace: 1/2 tasks done (0.0083 per s), about 2 min left"
+def test_a_line_gives_tasks_done_the_share_of_the_work_and_the_time_left():
+    assert line("study", 3, 10) == "study: 3/10 tasks done"
+    assert line("study", 3, 10, 0.4, 14.0) == "study: 3/10 tasks done, 40 % of the estimated work, about 14 s left"
+    # shown in minutes from 2 minutes on
+    assert line("study", 1, 100, None, 1188.0) == "study: 1/100 tasks done, about 20 min left"
+    assert line("trace", 1, 2, None, 119.0) == "trace: 1/2 tasks done, about 119 s left"
+    assert line("trace", 1, 2, None, 120.0) == "trace: 1/2 tasks done, about 2 min left"
 
 
-def test_a_line_with_nothing_done_yet_or_everything_done_says_no_time_left():
-    assert line("study", 0, 5, 4.0) == "study: 0/5 tasks done (0 per s)"
-    assert line("study", 5, 5, 2.0) == "study: 5/5 tasks done (2.5 per s)"
-    assert line("study", 0, 5, 0.0) == "study: 0/5 tasks done (0 per s)"
+def test_the_time_left_comes_from_the_pace_of_the_work_not_from_a_cold_start():
+    """A cold start spends a minute compiling before any work is done; the time left is then the
+    work left at the pace measured since work was first seen done, and nothing is said before a
+    share WARMUP of the work is done (counting tasks, the first line said 99 min for a 3-min run)."""
+    pace = Pace(100.0)
+    assert pace.left(0.0, 30.0) is None  # nothing done yet
+    assert pace.left(1.0, 60.0) is None  # the first work seen: no pace yet
+    assert pace.left(4.0, 63.0) is None  # under WARMUP of the work
+    assert WARMUP * 100.0 <= 6.0
+    assert pace.left(6.0, 70.0) == pytest.approx(94.0 * 10.0 / 5.0)  # 5 units in 10 s since the first
+    assert pace.left(100.0, 90.0) is None  # all done
 
 
 # ------------------------------------------------------------------ local schedulers
@@ -84,14 +91,15 @@ def test_lines_count_every_task_and_the_last_line_is_all_of_them(capsys):
     parsed = [LINE.match(x) for x in lines]
     assert all(parsed), lines
     assert [(m[1], int(m[2]), int(m[3])) for m in parsed] == [("generate", k, 5) for k in range(1, 6)]
-    assert parsed[-1][4] is None and all(m[4] for m in parsed[:-1])  # time left until the end
+    # time left from the second line (a pace needs two) until the end
+    assert parsed[-1][5] is None and parsed[0][5] is None and all(m[5] for m in parsed[1:-1])
 
 
 def test_lines_come_no_oftener_than_the_period_but_the_last_always(capsys):
     with LocalLines("generate", "lines", every_s=3600.0):
         dask.compute(_graph(), scheduler="sync")
     err = capsys.readouterr().err
-    assert len(err.splitlines()) == 1 and err.startswith("generate: 5/5 tasks done (")
+    assert err.splitlines() == ["generate: 5/5 tasks done"]
 
 
 def test_a_failed_computation_has_no_done_line(capsys):
@@ -132,7 +140,15 @@ def test_following_a_cluster_prints_lines_while_tasks_run_and_all_of_them_at_the
         assert all(parsed) and all(m[1] == "trace" and int(m[3]) == 3 for m in parsed), err
         done = [int(m[2]) for m in parsed]
         assert len(done) >= 2 and done == sorted(done) and done[0] < 3 and done[-1] == 3  # while running, then all
-        assert parsed[-1][4] is None
+        assert parsed[-1][5] is None
+
+        # Weighed by the estimate's work: the share of it done is said too.
+        jobs = [dask.delayed(slow)(i, dask_key_name=f"job-{i}") for i in range(3)]
+        futures = client.compute(jobs)
+        follow(client, futures, graph_keys(jobs), "trace", "lines", every_s=0.2,
+               weights={"job-0": 1.0, "job-1": 1.0, "job-2": 2.0})
+        err = capsys.readouterr().err.splitlines()
+        assert err[-1] == "trace: 3/3 tasks done" and any("% of the estimated work" in x for x in err[:-1]), err
 
         futures = client.compute([dask.delayed(slow)(i) for i in range(2)])
         follow(client, futures, keys, "trace", "off", every_s=0.2)

@@ -462,7 +462,6 @@ def test_relative_cache_and_results_are_the_clients_on_a_scheduler_whose_workers
 @pytest.mark.parametrize("line, rule", [
     ("rays: 1000000000000", "more memory than this machine's"),
     ("beam_um: 1000000000", "more disk than the"),  # the wood under a 1 km beam
-    ("voxel_um: 0.000001", "more disk than the"),
 ])
 def test_absurd_sizes_are_refused_before_planning_even_in_a_dry_run(tmp_path, capsys, line, rule):
     study = tmp_path / "big.yaml"
@@ -555,3 +554,23 @@ thickness_mm: 0.2
 trace: {method: exact}
 vary: {parameter: wall_um, values: [1.0, 3.0]}
 """
+
+
+@pytest.mark.parametrize("method", ["fast", "exact"])
+def test_a_voxel_outside_its_range_is_refused_whichever_method_and_an_unused_one_is_named(tmp_path, capsys, method):
+    """A voxel of 1e-6 µm is a typo whatever the method (with `exact`, which uses none, it once ran
+    without a word); a valid voxel given to `exact` is named as unused, in one line."""
+    study = tmp_path / "v.yaml"
+    text = TINY.replace("{values}", "[0.01]").replace("trace: {method: fast}", f"trace: {{method: {method}}}")
+    study.write_text(text + "voxel_um: 0.000001\n")
+    argv = ["study", str(study), "--scale", "small", "--cache", str(tmp_path / "c"), "--results", str(tmp_path / "r"),
+            "--dry-run"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "line 13: `voxel_um` must be >= 0.01 µm, got voxel_um=1e-06" in err, err
+    study.write_text(text + "voxel_um: 0.25\n")
+    assert main(argv) == 0
+    notes = [ln for ln in capsys.readouterr().err.splitlines() if "unused" in ln]
+    assert notes == ([] if method == "fast" else [
+        "twray study: `voxel_um` is unused in v: method exact traces the model's own surfaces, no voxels (it "
+        "applies with --method fast, accurate or paper)"])

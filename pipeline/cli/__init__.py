@@ -76,13 +76,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"twray: error: {exc}", file=sys.stderr)
         return EXIT_ENVIRONMENT
     except OSError as exc:  # the filesystem refused (disk full, permissions): one line, not a traceback
-        log = runlog.record(exc)
-        print(f"twray: error: {runlog.os_error_line(exc)}; traceback in {log}", file=sys.stderr)
+        print(f"twray: error: {runlog.os_error_line(exc)}; {runlog.traceback_note(exc)}", file=sys.stderr)
         return EXIT_ENVIRONMENT
     except Exception as exc:  # a defect of twray: one line, the traceback in the log
-        log = runlog.record(exc)
         print(f"twray: error: internal error, {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''} "
-              f"(a defect of twray: please report it with the traceback in {log})", file=sys.stderr)
+              f"(a defect of twray: please report it with its traceback; {runlog.traceback_note(exc)})",
+              file=sys.stderr)
         return EXIT_ENVIRONMENT
     finally:
         if previous is not None:

@@ -71,7 +71,8 @@ def _cluster(args, command: str):
     ``--scheduler-file``); its logs go to the run's log file under ``--cache``."""
     from ..cluster import cluster
 
-    return cluster(command, workers=None if args.workers is None else integer(args.workers, "workers", 1),
+    return cluster(command, quiet=args.quiet,
+                   workers=None if args.workers is None else integer(args.workers, "workers", 1),
                    threads=None if args.threads is None else integer(args.threads, "threads", 1),
                    memory=memory_limit(args.memory_limit), scheduler=args.scheduler,
                    scheduler_file=args.scheduler_file)
@@ -108,6 +109,10 @@ def cmd_study(args) -> int:
     names = [s.name for s in studies]
     if len(set(names)) != len(names):
         raise ParameterError(f"study files must have distinct names, got {names}")
+    unused = [s.name for s in studies if "voxel_um" in s.unused]
+    if unused:
+        print(f"twray study: `voxel_um` is unused in {', '.join(unused)}: method exact traces the model's own "
+              "surfaces, no voxels (it applies with --method fast, accurate or paper)", file=sys.stderr)
     # What could never fit is refused before planning (which lists the wood's chunks).
     # A target over woods may trace up to its cap of woods (over rays, study_estimate takes its cap of rays).
     scenes = [sc for st in studies for sc in at_target_cap(st).all_scenes()]

@@ -19,11 +19,14 @@ class Graph:
     n_trace: int
     n_summaries: int = 0
     labels: dict = field(default_factory=dict)  # task key: what it computes, for the user's line
+    weights: dict = field(default_factory=dict)  # trace task key: its estimated CPU-seconds, for the time left
 
 
 def build_graph(plans: list[Plan]) -> Graph:
     """Dask delayed objects computing every missing stage of ``plans``."""
     import dask
+
+    from ..limits import shard_estimate
 
     # Task arguments enter the graph once each, by name, and untraversed: dask would
     # otherwise walk every dataclass field of every argument of every task.
@@ -52,13 +55,15 @@ def build_graph(plans: list[Plan]) -> Graph:
             for i in range(0, len(chunks), COLUMN_BATCH)]
     summaries = []
     pools = []
+    weights: dict[str, float] = {}
     n_trace = 0
     for plan in plans:
         done = {}
         for summ in plan.summaries:
             if summ.cached:
                 continue
-            scene = constant(plan.study.realisation(summ.scene_index, summ.realisation), f"scene-{summ.key[:12]}")
+            sc = plan.study.realisation(summ.scene_index, summ.realisation)
+            scene = constant(sc, f"scene-{summ.key[:12]}")
             what = f"{plan.study.name} {plan.study.label(summ.scene_index)} realisation {summ.realisation}"
             # A worker that dies may be holding a task's arguments: they are named after its scene too.
             for name in ("summary", "scene", "summ", "shards"):
@@ -70,6 +75,7 @@ def build_graph(plans: list[Plan]) -> Graph:
                     wood = shard.micro
                     for name in ("rays", "shard"):
                         labels[f"{name}-{shard.key[:12]}"] = f"{what}, rays {shard.lo}-{shard.hi}"
+                    weights[f"rays-{shard.key[:12]}"] = shard_estimate(sc, shard.hi - shard.lo).cpu_s
                     traced.append(dask.delayed(trace_shard, pure=False)(
                         micro_args.get(wood), scene, constant(shard, f"shard-{shard.key[:12]}"),
                         *micro_tasks.get(wood, ()), dask_key_name=f"rays-{shard.key[:12]}"))
@@ -89,7 +95,7 @@ def build_graph(plans: list[Plan]) -> Graph:
                 constant(plan.study.realisation(pool.scene_index, 0), f"scene0-{pool.key[:12]}"), constant(pool, f"poolarg-{pool.key[:12]}"), shards,
                 *[done[s.key] for s in mine if s.key in done], dask_key_name=f"pool-{pool.key[:12]}"))
     micro = [t for ts in micro_tasks.values() for t in ts]
-    return Graph(micro, pools, n_trace, len(summaries), labels)
+    return Graph(micro, pools, n_trace, len(summaries), labels, weights)
 
 
 def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
@@ -108,7 +114,7 @@ def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
 
     futures = client.compute(graph.micro + graph.summaries)
     results = gather_graph(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress,
-                           graph.labels)
+                           graph.labels, graph.weights)
     n = len(graph.micro)
     report["chunks_generated"] = int(sum(results[:n]) + sum(r["chunks_generated"] for r in results[n:]))
     return report

@@ -148,6 +148,7 @@ class Study:
     scenes: tuple[Scene, ...]  # one per value (per cell of the grid, C order), each on realisation 0
     realisations: int = 1
     axes: tuple[Axis, ...] = ()  # the varied parameters (one for a 1-D study)
+    unused: tuple[str, ...] = ()  # settings the file gives that its method does not use (voxel_um with exact)
 
     def realisation(self, index: int, r: int) -> Scene:
         """Value ``index`` on wood realisation ``r``: the wood and beam of seed ``seed + r``."""
@@ -362,7 +363,8 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         fail(("title",), f"`title` must be a string, got {title!r}")
     return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
                  parameter=" × ".join(a.parameter for a in axes), dimension=dimension, units=first.units,
-                 long_name=first.long_name, scenes=tuple(scenes), realisations=n_real, axes=tuple(axes))
+                 long_name=first.long_name, scenes=tuple(scenes), realisations=n_real, axes=tuple(axes),
+                 unused=("voxel_um",) if "voxel_um" in data and settings.medium_kind == "surfaces" else ())
 
 
 def _vary(vary, fail) -> list[tuple[str, Any, tuple]]:
