@@ -160,7 +160,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     tips = fibre_tip_rows(base, n_boot=n_boot)
     paper_tables = load_table1(base / "paper-method")
     methods = method_rows(tables, paper_tables, n_boot=n_boot)
-    voxel_dir = base / "accurate"  # Table 1 as traced with `accurate`, where it is now exact
+    voxel_dir = base / "accurate"  # Table 1 as traced with `accurate`, beside `exact`
     voxel_tables = load_table1(voxel_dir) if voxel_dir.exists() else None
     voxel_rows = method_rows(tables, voxel_tables, n_boot=n_boot) if voxel_tables else []
     p1 = paper_tables["study-1"]

@@ -18,13 +18,12 @@ from . import __version__, limits
 from .analysis import FwhmSpec, Target
 from .summary import summarize
 from .optics.interface import STATUS_NAMES
-from .optics.media import wood_medium
 from .optics.rays import square_beam
-from .optics.references import Reference, reference_medium
-from .optics.settings import Optics, TraceSettings, traced_voxel_um
+from .optics.references import Reference, scene_medium
+from .optics.settings import Optics, TraceSettings, check_paper_step, traced_voxel_um
 from .optics.sources import ArraySource, load_volume
 from .optics.trace import trace_to_target
-from .params import ParameterError, WoodParams, build_params, make_grid
+from .params import ParameterError, WoodParams, build_params, check_voxel, make_grid
 from .publish import check_replaceable, publish, staged_path
 from .provenance import provenance_attrs
 
@@ -79,24 +78,21 @@ def medium_of(job: TraceJob):
         centre = (nr * job.voxel_um / 2.0, nl * job.voxel_um / 2.0)
         # A user volume's cell pitch is unknown: the estimate assumes birch's.
         thickness_um, pitch, wall = nt * job.voxel_um, build_params("birch").fibre_diameter_um, None
-    elif job.reference is not None:
-        ref = job.reference
-        medium = reference_medium(ref, seed=job.seed, thickness_um=job.thickness_um, voxel_um=job.voxel_um,
-                                  settings=job.settings)
-        centre = (0.0, 0.0)
-        thickness_um, pitch, wall = job.thickness_um, ref.pitch_um, ref.wall_um
     else:
-        make_grid((1.0, job.thickness_um, 1.0), job.voxel_um, (0.0, 0.0, 0.0), job.wood)
-        medium = wood_medium(job.wood, seed=job.seed, thickness_um=job.thickness_um, voxel_um=job.voxel_um,
-                             settings=job.settings, threads=os.cpu_count() or 1)
+        if job.reference is None:
+            check_voxel(job.voxel_um, job.wood)  # whatever the method
+            if job.settings.medium_kind == "voxels":  # a voxel grid only where there are voxels
+                make_grid((1.0, job.thickness_um, 1.0), job.voxel_um, (0.0, 0.0, 0.0), job.wood)
+        medium = scene_medium(wood=job.wood, reference=job.reference, seed=job.seed, thickness_um=job.thickness_um,
+                              voxel_um=job.voxel_um, settings=job.settings, threads=os.cpu_count() or 1)
         centre = (0.0, 0.0)
-        thickness_um, pitch, wall = job.thickness_um, job.wood.fibre_diameter_um, job.wood.wall_thickness_um
+        pitch, wall = ((job.reference.pitch_um, job.reference.wall_um) if job.reference is not None
+                       else (job.wood.fibre_diameter_um, job.wood.wall_thickness_um))
+        thickness_um = job.thickness_um
     if job.beam_origin_um is not None:
         centre = job.beam_origin_um
     voxel = job.traced_voxel_um
-    if job.settings.method == "paper" and wall is not None and job.settings.voxel.step_vox * voxel >= wall:
-        raise ParameterError(f"`step_vox` must be smaller than the wall ({wall:g} µm = "
-                             f"{wall / voxel:g} voxels), got step_vox={job.settings.voxel.step_vox:g}")
+    check_paper_step(job.settings, job.voxel_um, wall)
     half = job.beam_um / 2
     if job.volume and not (centre[0] - half >= 0 and centre[0] + half <= nr * voxel
                            and centre[1] - half >= 0 and centre[1] + half <= nl * voxel):

@@ -122,10 +122,6 @@ class Sheet:
                                  f"got {self.thickness_um:g} µm")
         return self
 
-    @property
-    def n_voxels_t(self) -> int:
-        return int(round(self.thickness_um / self.voxel_um))
-
 
 @njit(cache=True)
 def _aperture_kernel(pixel_ids, samples, rings, seed):

@@ -254,8 +254,8 @@ def smoothed_wall(bits, masks, table, box, cs, shape, x, sigma, radius, grad, he
                         return -1.0
                     slots[sg, ua, ub] = slot
     # Rows that are neither all wall nor all polymer are summed over their set
-    # bits in parts of ``width`` window positions (the order the cached
-    # results of TRACER_VERSION 3 were made in).
+    # bits in parts of ``width`` window positions: that order of the sums is part
+    # of the voxel methods' results, bit for bit.
     parts = (n + PART_BITS - 1) // PART_BITS
     width = (n + parts - 1) // parts
     pmask = np.uint64((1 << width) - 1)

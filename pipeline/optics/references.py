@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 
 from ..params import ParameterError
 from .lattice import Lattice, honeycomb, tube_lattice
+from .media import wood_medium
 from .settings import traced_voxel_um
 
 # name: (family, packing)
@@ -80,3 +81,14 @@ def reference_medium(ref: Reference, *, seed: int, thickness_um: float, voxel_um
     if settings.medium_kind == "surfaces":
         return lat.slab(thickness_um)
     return lat.source(thickness_um=thickness_um, voxel_um=traced_voxel_um(voxel_um, settings))
+
+
+def scene_medium(*, wood, reference: Reference | None, seed: int, thickness_um: float, voxel_um: float, settings,
+                 store=None, threads: int = 1):
+    """The medium a scene traces: the reference lattice ``reference`` if given, else generated wood
+    ``wood`` (:func:`~pipeline.optics.media.wood_medium`, its chunks from ``store`` when given), as
+    ``settings.method`` traces it.  The one place a scene's medium is chosen."""
+    if reference is not None:
+        return reference_medium(reference, seed=seed, thickness_um=thickness_um, voxel_um=voxel_um, settings=settings)
+    return wood_medium(wood, seed=seed, thickness_um=thickness_um, voxel_um=voxel_um, settings=settings, store=store,
+                       threads=threads)

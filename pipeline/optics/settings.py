@@ -172,6 +172,17 @@ def traced_voxel_um(voxel_um: float, settings: TraceSettings) -> float:
     return voxel_um / settings.refine
 
 
+def check_paper_step(settings: TraceSettings, voxel_um: float, wall_um: float | None) -> None:
+    """The paper's method steps ``step_vox`` voxels: a step as wide as the wall (``wall_um``; None:
+    unknown) jumps over walls (docs/methods.md#voxel-methods: the paper's step is half a wall)."""
+    if settings.method != "paper" or wall_um is None:
+        return
+    voxel = traced_voxel_um(voxel_um, settings)
+    if settings.voxel.step_vox * voxel >= wall_um:
+        raise ParameterError(f"`step_vox` must be smaller than the wall ({wall_um:g} µm = {wall_um / voxel:g} "
+                             f"voxels), got step_vox={settings.voxel.step_vox:g}")
+
+
 def wall_index(ri_polymer: float, delta_ri: float) -> float:
     """The cell wall's refractive index: the polymer's plus ΔRI (the one place it is derived)."""
     return ri_polymer + delta_ri

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..publish import is_current, publish_dataset
+from ..publish import publish_dataset
 from .plan import Plan, read_entry, target_met
 from .summaries import describe_intervals, summary_variables
 from .spec import scene_record
@@ -116,11 +116,6 @@ def study_dataset(plan: Plan):
 def _provenance(plan: Plan) -> dict:
     return {"study_yaml": plan.study.text, "scale": plan.study.scale,
             "cache_keys": json.dumps(plan.keys()), "source": f"twray {__version__}"}
-
-
-def dataset_is_current(plan: Plan, out: Path) -> bool:
-    """Whether ``out`` was built from exactly this study and these cache entries, undamaged."""
-    return is_current(out, _provenance(plan))
 
 
 def write_dataset(plan: Plan, results_dir) -> Path:

@@ -49,8 +49,8 @@ from typing import Any
 
 from ..analysis import FwhmSpec, Target
 from ..optics.references import REFERENCE_FIELDS, REFERENCES, Reference, reference
-from ..optics.settings import (Optics, TraceSettings, chosen_method, settings_for, traced_voxel_um,
-                               wall_index)
+from ..optics.settings import (INDEX_RANGE, Optics, TraceSettings, check_paper_step, chosen_method, settings_for,
+                               traced_voxel_um, wall_index)
 from ..params import (ParameterError, WOOD_FIELDS, WoodParams, check_voxel, coerce_field, load_preset,
                       read_yaml_file, validate, yaml_locator)
 
@@ -241,7 +241,8 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
     base = {
         "thickness_mm": number("thickness_mm", 1.0, "> 0 mm", lambda v: v > 0),
         "delta_ri": number("delta_ri", 0.01, "in (-0.5, 0.5)", lambda v: abs(v) < 0.5),
-        "ri_polymer": number("ri_polymer", 1.49, "in [1, 3]", lambda v: 1 <= v <= 3),
+        "ri_polymer": number("ri_polymer", 1.49, f"in [{INDEX_RANGE[0]:g}, {INDEX_RANGE[1]:g}]",
+                             lambda v: INDEX_RANGE[0] <= v <= INDEX_RANGE[1]),
     }
     beam_um = number("beam_um", 150.0, "> 0 µm", lambda v: v > 0)
     voxel_um = number("voxel_um", 0.5, "> 0 µm", lambda v: v > 0)
@@ -340,13 +341,10 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
             Optics.of_delta(n_poly, scene_vars["delta_ri"]).validate()
         except ParameterError as exc:
             fail(("vary",), str(exc))
-        if settings.method == "paper" and (settings.voxel.step_vox * traced_voxel_um(voxel_um, settings)
-                                           >= wall):
-            # A step as wide as the wall jumps over walls (docs/methods.md#voxel-methods: the paper's step is half a wall).
-            fail(("trace", "step_vox"), f"`trace.step_vox` must be smaller than the wall "
-                                        f"({wall:g} µm = "
-                                        f"{wall / traced_voxel_um(voxel_um, settings):g} "
-                                        f"voxels), got step_vox={settings.voxel.step_vox:g}")
+        try:
+            check_paper_step(settings, voxel_um, wall)
+        except ParameterError as exc:
+            fail(("trace", "step_vox"), "`trace." + str(exc).lstrip("`"))
         if thickness_um < voxel_um:
             fail(("thickness_mm",), f"`thickness_mm` must be at least one voxel at scale {scale}, "
                                     f"got {thickness_um:g} µm")

@@ -26,18 +26,13 @@ def trace_shard(m: Micro | None, scene: Scene, shard: Shard, *_after) -> int:
     """Trace rays ``[lo, hi)`` of the scene's beam and store them (an .npz); returns the
     wood chunks it generated (``m``: the wood's chunk store, None for a surface method or a
     reference lattice, voxelised as the rays reach it)."""
-    from ..optics.media import wood_medium
     from ..optics.rays import VOXEL_COUNTS, square_beam
-    from ..optics.references import reference_medium
+    from ..optics.references import scene_medium
     from ..optics.trace import trace
 
     store = m.store() if m is not None else None
-    if scene.reference is not None:
-        medium = reference_medium(scene.reference, seed=scene.seed, thickness_um=scene.thickness_um,
-                                  voxel_um=scene.voxel_um, settings=scene.settings)
-    else:
-        medium = wood_medium(scene.wood, seed=scene.seed, thickness_um=scene.thickness_um, voxel_um=scene.voxel_um,
-                             settings=scene.settings, store=store)
+    medium = scene_medium(wood=scene.wood, reference=scene.reference, seed=scene.seed, thickness_um=scene.thickness_um,
+                          voxel_um=scene.voxel_um, settings=scene.settings, store=store)
     beam = square_beam(scene.rays, scene.beam_um, seed=scene.seed)[shard.lo:shard.hi]
     r = trace(medium, beam, scene.optics, scene.settings)
     generated = store.generated if store is not None else 0
