@@ -31,7 +31,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.effects import TABLE1, reduce_rays  # noqa: E402
+from pipeline.effects import reduce_rays  # noqa: E402
+from pipeline.result_sets import TABLE1  # noqa: E402
 from pipeline.study.graph import compute  # noqa: E402
 from pipeline.study.plan import plan_study  # noqa: E402
 from pipeline.study.tasks import load_rays  # noqa: E402

@@ -19,8 +19,8 @@ import numpy as np
 
 from .analysis import deviated_from_angles, fwhm, image_quality
 from .summary import N_BOOT, percentile_interval, t_interval
-from .figures import TABLE1, value_label
 from .publish import open_dataset
+from .result_sets import study_dimension, value_label
 from .microstructure.model import tip_wall_angle_deg
 from .optics.interface import TRANSMITTED
 from .params import WoodParams
@@ -31,14 +31,7 @@ REFERENCE = {"thickness": 1.0, "delta_ri": 0.01}
 
 LEVEL = 0.95
 
-def load_table1(results: Path) -> dict:
-    """{study name: Dataset} of the Table 1 studies under ``results``."""
-    return {name: open_dataset(Path(results) / f"{name}.zarr") for name in TABLE1}
-
 # ------------------------------------------------------------------ effects
-def study_dimension(ds) -> str:
-    return ds["FWHM_R"].dims[0]
-
 def reference_index(ds) -> int:
     dim = study_dimension(ds)
     if dim in REFERENCE:

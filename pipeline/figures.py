@@ -35,8 +35,8 @@ from .cache import atomic_write
 from .optics.interface import TRANSMITTED, TRAPPED
 from .params import Grid, WoodParams, build_params, validate
 from .publish import open_dataset
+from .result_sets import TABLE1, traced_voxel_um_of, value_label
 
-TABLE1 = ("study-1", "study-2", "study-3", "study-4", "study-5-1", "study-5-2", "study-6")
 SECTION_UM = (300.0, 500.0, 600.0)  # the block the sections bound, along R, T, L [µm]
 SECTION_VOXEL_UM = 0.5
 DPI = 110
@@ -247,15 +247,6 @@ def plot_trajectories(points: np.ndarray, status: np.ndarray, caption: str, path
 
 
 # ------------------------------------------------------------------ studies
-def value_label(v) -> str:
-    """A study value as the report and the figures print it ("yes"/"no" for a switch)."""
-    if isinstance(v, (bool, np.bool_)):
-        return "yes" if v else "no"
-    if isinstance(v, (float, np.floating, int, np.integer)):
-        return f"{float(v):g}"
-    return str(v)
-
-
 def _value_labels(ds, dim: str) -> list[str]:
     return [value_label(v) for v in ds[dim].values]
 
@@ -409,7 +400,7 @@ def make_figures(results: Path, out: Path, *, which: set[str] | None = None, log
         ds = datasets["study-1"]
         rec = max(scene_records(ds), key=lambda r: r["thickness_um"])
         points, status = trajectories(rec)
-        grid = "" if rec["settings"].get("voxel", {}) is None else f", {traced_voxel(rec):g} µm voxels"
+        grid = "" if rec["settings"].get("voxel", {}) is None else f", {traced_voxel_um_of(rec):g} µm voxels"
         caption = (f"{len(points)} rays through {rec['thickness_um'] / 1000:g} mm of birch TW "
                    f"(ΔRI {rec['delta_ri']:g}, method {rec['settings']['method']}{grid}), "
                    f"the thickest sample of {ds.attrs['title']}")
@@ -439,8 +430,3 @@ def make_figures(results: Path, out: Path, *, which: set[str] | None = None, log
     return made
 
 
-def traced_voxel(record: dict) -> float:
-    """The voxel a scene record's wood was traced on [µm]."""
-    from .optics.settings import TraceSettings, traced_voxel_um
-
-    return traced_voxel_um(record["voxel_um"], TraceSettings.from_dict(record["settings"]))

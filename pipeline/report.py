@@ -11,23 +11,25 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .analysis import HAZE_ANGLE_DEG
-from .effects import (N_BOOT, TABLE1, TRADEOFF_TARGETS, Effect, all_effects_of, camera_rows, cheapest_meeting,
-                      experiment_rows, fibre_tip_rows, fine_voxel_rows, load_table1, method_rows, reference_index,
-                      setting_label, study_dimension, table1_rows)
+from .effects import (N_BOOT, Effect, all_effects_of, camera_rows, experiment_rows, fibre_tip_rows, fine_voxel_rows,
+                      method_rows, reference_index, table1_rows)
 from .design import MAPS, glance_tables, window_table
 from .effects import p_value
-from .figures import table1_structures, traced_voxel, value_label
+from .figures import table1_structures
 from .publish import open_dataset
-from .report_tables import (balsa_reading_sentence, effects_markdown, experiment_markdown, fibre_tip_markdown,
-                            fibre_tip_sentence, method_markdown, method_summary, table1_markdown, variation_markdown,
+from .report_tables import (balsa_reading_sentence, camera_markdown, camera_methods_markdown, effects_markdown,
+                            experiment_markdown, fibre_tip_markdown, fibre_tip_sentence, method_markdown,
+                            method_summary, minutes_text, table1_markdown, tradeoff_markdown, variation_markdown,
                             woods_text)
 from .report_source import source_sections
 from .report_wave import wave_section
+from .result_sets import TABLE1, load_table1, study_dimension, traced_voxel_um_of, value_label
 
 # What geometrical optics leads one to expect of each study, before running it; the
 # report states whether twray's numbers agree.  (The source's own numbers are compared in
@@ -101,337 +103,327 @@ def _ratio_sentence(ds) -> str:
             f"{n[k1] / n[k0]:.1f}× and FWHM_R {w[k1] / w[k0]:.1f}×; over all thicknesses FWHM_R ∝ N^{slope:.2f} "
             "(least squares in log-log).")
 
-def camera_markdown(rows: list[dict]) -> list[str]:
-    lines = ["| image | focal length (mm) | gap (µm) | ΔRI | object | interfaces per ray | contrast "
-             "(ideal) | RMS error vs ideal |", "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(f"| {r['config']} | {r['focal_mm']:g} | {r['gap_um']:g} | {r['delta_ri']:.3g} | "
-                     f"“{r['object']}”, {r['object_size_mm']:g} mm | {r['interfaces_per_ray']:.1f} | "
-                     f"{r['contrast']:.2f} ({r['ideal_contrast']:.2f}) | {r['rmse']:.3f} |")
-    return lines
-
-def camera_methods_markdown(fast: list[dict], exact: list[dict]) -> list[str]:
-    """Each image traced with `fast` and with `exact` on the same aperture samples."""
-    lines = ["| image | interfaces per ray, fast / exact | contrast, fast / exact (ideal) | "
-             "RMS error vs ideal, fast / exact |", "|---|---|---|---|"]
-    for f, e in zip(fast, exact):
-        lines.append(f"| {f['config']} | {f['interfaces_per_ray']:.1f} / {e['interfaces_per_ray']:.1f} | "
-                     f"{f['contrast']:.2f} / {e['contrast']:.2f} ({e['ideal_contrast']:.2f}) | "
-                     f"{f['rmse']:.3f} / {e['rmse']:.3f} |")
-    return lines
-
-def tradeoff_markdown(ds) -> list[str]:
-    """The cheapest swept setting (cold wall time) meeting each of the two looser targets, per scene."""
-    targets = TRADEOFF_TARGETS[1:]
-    lines = ["| scene | " + " | ".join(t for t, _, _ in targets) + " |", "|---|" + "---|" * len(targets)]
-    for scene in json.loads(ds.attrs["scenes"]):
-        sel = ds.where((ds["scene"] == scene) & np.isfinite(ds["haze_error"]), drop=True)
-        rows = [{"method": str(p["method"].values), "voxel_um": float(p["voxel_um"]), "rays": int(p["rays"]),
-                 "step_vox": float(p["step_vox"]), "wall_s": float(p["wall_time"]),
-                 "haze_error": float(p["haze_error"]),
-                 "fwhm_r_rel_error": float(p["FWHM_R_error"] / p["reference_FWHM_R"])}
-                for p in (sel.isel(point=k) for k in range(sel.sizes.get("point", 0)))]
-        cells = []
-        for _, h, f in targets:
-            b = cheapest_meeting(rows, h, f) if rows else None
-            if b is None:
-                cells.append("none of the swept settings" if rows else "—")
-                continue
-            cells.append(f"{setting_label(b['method'], b['voxel_um'], b['rays'], b['step_vox'])}: {b['wall_s']:.1f} s "
-                         f"(haze ±{100 * b['haze_error']:.1f} pts, FWHM_R ±{100 * abs(b['fwhm_r_rel_error']):.0f} %)")
-        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
-    return lines
-
-def _minutes(s: float) -> str:
-    return f"{s / 60:.1f} min" if s >= 90 else f"{s:.0f} s"
-
 # ------------------------------------------------------------------ the report
-def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOOT) -> str:
-    """The Markdown of ``results/REPORT.md`` from the datasets under ``results``."""
+@dataclass
+class ReportData:
+    """Every dataset the report reads, opened once, and what is computed from them for several
+    sections (:func:`load_report_data`)."""
+
+    results: Path
+    base: Path  # results/<scale_dir>
+    scale_dir: str
+    n_boot: int
+    tables: dict  # Table 1: {study: Dataset}
+    camera: object
+    tradeoff: object
+    bench: dict
+    all_effects: dict
+    rows: list
+    experiment: list
+    tips: list
+    paper_tables: dict
+    methods: list
+    voxel_tables: dict | None
+    voxel_rows: list
+    maps: dict  # the design maps, by name of design.MAPS (all of them, or none)
+    fig: str = "figures"
+
+    @property
+    def s1(self):
+        return self.tables["study-1"]
+
+    @property
+    def settings(self) -> dict:
+        return json.loads(self.s1.attrs["trace_settings"])
+
+    @property
+    def woods(self) -> dict:
+        return {name: ds.sizes.get("realisation", 1) for name, ds in self.tables.items()}
+
+
+def load_report_data(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOOT) -> ReportData:
+    """Open the committed datasets under ``results`` and compute the rows the sections share."""
     results = Path(results)
     base = results / scale_dir
     tables = load_table1(base)
-    camera = open_dataset(base / "camera" / "figure5.zarr")
-    tradeoff = open_dataset(results / "tradeoff.zarr")
-    bench = json.loads((results / "bench.json").read_text())
-    all_effects = all_effects_of(tables, n_boot=n_boot)
-    rows = table1_rows(tables)
-    experiment = experiment_rows(base)
-    tips = fibre_tip_rows(base, n_boot=n_boot)
     paper_tables = load_table1(base / "paper-method")
-    methods = method_rows(tables, paper_tables, n_boot=n_boot)
     voxel_dir = base / "accurate"  # Table 1 as traced with `accurate`, beside `exact`
     voxel_tables = load_table1(voxel_dir) if voxel_dir.exists() else None
-    voxel_rows = method_rows(tables, voxel_tables, n_boot=n_boot) if voxel_tables else []
-    p1 = paper_tables["study-1"]
-    s1 = tables["study-1"]
-    woods = {name: ds.sizes.get("realisation", 1) for name, ds in tables.items()}
-    first_seed = int(s1["seed_of_realisation"].values[0]) if "seed_of_realisation" in s1 else int(s1.attrs["seed"])
-    target = json.loads(s1.attrs["target_ci"]) if "target_ci" in s1.attrs else None
-    settings = json.loads(s1.attrs["trace_settings"])
-    fig = "figures"
-    L: list[str] = []
-    add = L.append
-    add("# twray reproduction report")
-    add("")
-    add("Generated by `make report` from the committed result datasets; no number below is typed by hand. "
-        f"Datasets: `results/{scale_dir}/study-*.zarr` (Table 1), `results/{scale_dir}/camera/figure5.zarr` "
-        "(camera), `results/tradeoff.zarr` (speed against accuracy), `results/bench.json` (costs). "
-        "Figures: `make figures` → `results/figures/`.")
-    add("")
     maps = {n: open_dataset(base / "design" / f"{n}.zarr") for n in MAPS if (base / "design" / f"{n}.zarr").exists()}
-    if len(maps) == len(MAPS):
-        d0 = next(iter(maps.values()))
-        add("## At a glance: haze and FWHM_R of TW")
-        add("")
-        add(f"What a sample scatters, from the design maps (`make design`, `exact`, {d0.attrs['realisations']} woods × "
-            f"{d0.attrs['rays']} rays a cell, beam at normal incidence; ΔRI = wall − polymer index, polymer "
+    return ReportData(
+        results=results, base=base, scale_dir=scale_dir, n_boot=n_boot, tables=tables,
+        camera=open_dataset(base / "camera" / "figure5.zarr"), tradeoff=open_dataset(results / "tradeoff.zarr"),
+        bench=json.loads((results / "bench.json").read_text()), all_effects=all_effects_of(tables, n_boot=n_boot),
+        rows=table1_rows(tables), experiment=experiment_rows(base), tips=fibre_tip_rows(base, n_boot=n_boot),
+        paper_tables=paper_tables, methods=method_rows(tables, paper_tables, n_boot=n_boot),
+        voxel_tables=voxel_tables,
+        voxel_rows=method_rows(tables, voxel_tables, n_boot=n_boot) if voxel_tables else [],
+        maps=maps if len(maps) == len(MAPS) else {})
+
+
+def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOOT) -> str:
+    """The Markdown of ``results/REPORT.md`` from the datasets under ``results``: its sections in order."""
+    d = load_report_data(results, scale_dir=scale_dir, n_boot=n_boot)
+    sections = (opening, glance, provenance_line, microstructures, trajectories, table1_section, variation,
+                trends, voxel_error, lambda d: source_sections(d.results, d.base, d.tables, d.methods),
+                paper_method, measured_samples, fibre_tips, camera_section, design_section,
+                lambda d: wave_section(d.results, d.scale_dir, d.fig), speed_against_accuracy, reproducing,
+                differences)
+    return "\n".join(line for section in sections for line in section(d))
+
+
+def opening(d: ReportData) -> list[str]:
+    return ["# twray reproduction report", "",
+            "Generated by `make report` from the committed result datasets; no number below is typed by hand. "
+            f"Datasets: `results/{d.scale_dir}/study-*.zarr` (Table 1), `results/{d.scale_dir}/camera/figure5.zarr` "
+            "(camera), `results/tradeoff.zarr` (speed against accuracy), `results/bench.json` (costs). "
+            "Figures: `make figures` → `results/figures/`.", ""]
+
+
+def glance(d: ReportData) -> list[str]:
+    """The designer's first screen: the design maps' traced cells (none without the maps)."""
+    if not d.maps:
+        return []
+    d0 = next(iter(d.maps.values()))
+    return ["## At a glance: haze and FWHM_R of TW", "",
+            f"What a sample scatters, from the design maps (`make design`, `exact`, {d0.attrs['realisations']} "
+            f"woods × {d0.attrs['rays']} rays a cell, beam at normal incidence; ΔRI = wall − polymer index, polymer "
             f"{float(json.loads(d0.attrs['scenes'])[0]['ri_polymer']):g}). Each cell: in air (what a "
             "hazemeter sees) / inside the sample (the paper's angles). Haze: share of the light deviated by more "
             "than 2.5°. Between cells, and with intervals, `twray design --thickness-mm T --delta-ri D` reads "
             "the maps; [Design maps](#design-maps-how-well-must-the-polymer-match) gives the ΔRI window for a "
-            "haze limit.")
-        add("")
-        L.extend(glance_tables(maps))
-    add(f"Table 1 was traced with twray {s1.attrs['twray_version']} (tracer version {s1.attrs['tracer_version']}, "
-        f"generator version {s1.attrs['generator_version']}) at scale `{s1.attrs['scale']}`: "
-        f"{s1.attrs['rays']} rays per value on each of {woods_text(woods, target, first_seed)}{target_status(tables)}, "
-        f"method `{settings['method']}` "
-        + (f"(wood traced on {traced_voxel(json.loads(s1.attrs['scenes'])[0]):g} µm voxels), "
-           if settings["method"] != "exact" else "(the model's own surfaces, no voxels), ")
-        + f"angles {s1.attrs['exit_angles']} (inside the sample).")
-    add("")
-    add("## The microstructures")
-    add("")
-    add("Every structure of Table 1, generated from its parameters (docs/methods.md#the-microstructure-model): sections through a "
-        "300 × 500 × 600 µm block (R × T × L) and a 3D view of it (the paper's Figure 3).")
-    add("")
-    for slug, caption, _, _ in table1_structures(list(tables.values())):
-        add(f"**{caption}**")
-        add("")
-        add(f"![{caption}]({fig}/microstructure-{slug}.png)")
-        add("")
-    add("## Rays through 1.5 mm of birch")
-    add("")
-    add(f"![ray trajectories]({fig}/trajectories.png)")
-    add("")
-    add("Each ray goes straight inside one phase and turns at every wall it meets (Snell's law; total "
-        "internal reflection where it applies). The lateral axes are stretched: the rays stay within "
-        "a few degrees of +T.")
-    add("")
-    add("## Table 1")
-    add("")
-    add(f"Each number is its study's wood realisations pooled (the woods column): FWHM the width of the angle "
-        f"distribution at half its maximum (`{s1.attrs.get('fwhm_estimator', 'half-max')}`, the source's definition; "
-        "docs/methods.md#fwhm-and-haze), and haze the share of the transmitted rays deviating more than "
-        f"{HAZE_ANGLE_DEG:g}°. Intervals are 95 %, from resampling the woods (each drawn wood with all its rays; "
-        "Student t on woods − 1 degrees of freedom), so they hold the variation from one wood to the next and "
-        "the sampling of rays, each once. They are intervals against sampling noise only: the estimator, the method "
-        "and the wood model are systematic choices, measured in their own sections below. The "
-        "last column is the range of the woods' own FWHM_R."
-        + (" " + base_scene_sentence(rows) if len(set(woods.values())) > 1 else ""))
-    add("")
-    L.extend(table1_markdown(rows))
-    add("")
+            "haze limit.", ""] + glance_tables(d.maps)
+
+
+def provenance_line(d: ReportData) -> list[str]:
+    s1, settings = d.s1, d.settings
+    first_seed = int(s1["seed_of_realisation"].values[0]) if "seed_of_realisation" in s1 else int(s1.attrs["seed"])
+    target = json.loads(s1.attrs["target_ci"]) if "target_ci" in s1.attrs else None
+    return [f"Table 1 was traced with twray {s1.attrs['twray_version']} (tracer version {s1.attrs['tracer_version']}, "
+            f"generator version {s1.attrs['generator_version']}) at scale `{s1.attrs['scale']}`: "
+            f"{s1.attrs['rays']} rays per value on each of {woods_text(d.woods, target, first_seed)}"
+            f"{target_status(d.tables)}, method `{settings['method']}` "
+            + (f"(wood traced on {traced_voxel_um_of(json.loads(s1.attrs['scenes'])[0]):g} µm voxels), "
+               if settings["method"] != "exact" else "(the model's own surfaces, no voxels), ")
+            + f"angles {s1.attrs['exit_angles']} (inside the sample).", ""]
+
+
+def microstructures(d: ReportData) -> list[str]:
+    out = ["## The microstructures", "",
+           "Every structure of Table 1, generated from its parameters (docs/methods.md#the-microstructure-model): "
+           "sections through a 300 × 500 × 600 µm block (R × T × L) and a 3D view of it (the paper's Figure 3).", ""]
+    for slug, caption, _, _ in table1_structures(list(d.tables.values())):
+        out += [f"**{caption}**", "", f"![{caption}]({d.fig}/microstructure-{slug}.png)", ""]
+    return out
+
+
+def trajectories(d: ReportData) -> list[str]:
+    return ["## Rays through 1.5 mm of birch", "", f"![ray trajectories]({d.fig}/trajectories.png)", "",
+            "Each ray goes straight inside one phase and turns at every wall it meets (Snell's law; total "
+            "internal reflection where it applies). The lateral axes are stretched: the rays stay within "
+            "a few degrees of +T.", ""]
+
+
+def table1_section(d: ReportData) -> list[str]:
+    out = ["## Table 1", "",
+           f"Each number is its study's wood realisations pooled (the woods column): FWHM the width of the angle "
+           f"distribution at half its maximum (`{d.s1.attrs.get('fwhm_estimator', 'half-max')}`, the source's "
+           "definition; docs/methods.md#fwhm-and-haze), and haze the share of the transmitted rays deviating more "
+           f"than {HAZE_ANGLE_DEG:g}°. Intervals are 95 %, from resampling the woods (each drawn wood with all its "
+           "rays; Student t on woods − 1 degrees of freedom), so they hold the variation from one wood to the next "
+           "and the sampling of rays, each once. They are intervals against sampling noise only: the estimator, the "
+           "method and the wood model are systematic choices, measured in their own sections below. The "
+           "last column is the range of the woods' own FWHM_R."
+           + (" " + base_scene_sentence(d.rows) if len(set(d.woods.values())) > 1 else ""), ""]
+    out += table1_markdown(d.rows) + [""]
     for name in TABLE1:
-        add(f"![{tables[name].attrs['title']}]({fig}/{name}.png)")
-        add("")
-    add("Exit-angle distributions, their half-maximum widths and Lorentz fits (the paper's Figure S1):")
-    add("")
-    add(f"![angle histograms]({fig}/histograms.png)")
-    add("")
-    add("## Wood-to-wood variation")
-    add("")
-    add("One wood realisation is one sample. How much each value moves between its study's woods "
-        "(coefficient of variation of the woods' own values; haze as a standard deviation in points), how much of "
-        "that is the woods and how much the 1000 rays of each (variance components: the woods' variance minus "
-        "the ray variance of one wood's value, docs/methods.md#realisations-and-intervals), and how much wider "
-        "its FWHM_R interval is once the woods are in it:")
-    add("")
-    L.extend(variation_markdown(rows))
-    add("")
-    add("## The trends")
-    add("")
-    add("Each value against the study's reference value (the Table 1 default where the study has it). "
-        "FWHM changes are relative (%), haze changes in points. Intervals: paired, from resampling woods "
-        f"({n_boot} resamples, Student t): the same woods are drawn for every value (each value is "
-        "traced on the same woods with the same beam), so the interval is that of the difference, wood-to-wood "
-        "variation included. \"Not resolved\": the interval contains 0.")
-    add("")
-    L.extend(effects_markdown(all_effects))
-    add("")
-    add(multiple_comparisons_sentence(all_effects))
-    add("")
-    add("| study | what optics leads one to expect | why | what twray finds |")
-    add("|---|---|---|---|")
+        out += [f"![{d.tables[name].attrs['title']}]({d.fig}/{name}.png)", ""]
+    return out + ["Exit-angle distributions, their half-maximum widths and Lorentz fits (the paper's Figure S1):", "",
+                  f"![angle histograms]({d.fig}/histograms.png)", ""]
+
+
+def variation(d: ReportData) -> list[str]:
+    return ["## Wood-to-wood variation", "",
+            "One wood realisation is one sample. How much each value moves between its study's woods "
+            "(coefficient of variation of the woods' own values; haze as a standard deviation in points), how much "
+            "of that is the woods and how much the 1000 rays of each (variance components: the woods' variance "
+            "minus the ray variance of one wood's value, docs/methods.md#realisations-and-intervals), and how much "
+            "wider its FWHM_R interval is once the woods are in it:", ""] + variation_markdown(d.rows) + [""]
+
+
+def trends(d: ReportData) -> list[str]:
+    out = ["## The trends", "",
+           "Each value against the study's reference value (the Table 1 default where the study has it). "
+           "FWHM changes are relative (%), haze changes in points. Intervals: paired, from resampling woods "
+           f"({d.n_boot} resamples, Student t): the same woods are drawn for every value (each value is "
+           "traced on the same woods with the same beam), so the interval is that of the difference, wood-to-wood "
+           "variation included. \"Not resolved\": the interval contains 0.", ""]
+    out += effects_markdown(d.all_effects) + ["", multiple_comparisons_sentence(d.all_effects), "",
+                                               "| study | what optics leads one to expect | why | what twray finds |",
+                                               "|---|---|---|---|"]
     for name in TABLE1:
         exp, why = EXPECTED[name]
-        cells = (name, exp, why, _agreement(name, all_effects[name], tables))
-        add("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
-    add("")
-    add("The comparison above is with what geometrical optics predicts; the source's own published numbers "
-        "(docs/methods.md#the-source-s-published-numbers) are compared in \"Against the source\" below.")
-    add("")
-    if voxel_rows:
-        v1 = voxel_tables["study-1"]
-        add(f"## `{voxel_rows[0]['other']}` beside `{voxel_rows[0]['ref']}`: the voxel error on the wood itself")
-        add("")
-        add(f"Table 1 as traced with `{voxel_rows[0]['other']}` (wood on "
-            f"{traced_voxel(json.loads(v1.attrs['scenes'])[0]):g} µm voxels, `results/{scale_dir}/accurate/`), "
-            f"beside the same values traced with `{voxel_rows[0]['ref']}` on the same "
-            f"{voxel_rows[0]['realisations_common']} woods (the first of Table 1's) with the same "
-            f"{voxel_rows[0]['rays_common']} rays each, both pooled over those rays: the paired difference is the "
-            "voxel method's error on each Table 1 scene, 95 % intervals from resampling the woods (paired, Student t).")
-        add("")
-        L.extend(method_markdown(voxel_rows))
-        add("")
-        add(method_summary(voxel_rows))
-        add("")
-    L.extend(source_sections(results, base, tables, methods))
-    add(f"## The paper's method beside `{settings['method']}`")
-    add("")
-    add(f"Table 1 traced again with the paper's method (`--method paper`: 2-voxel steps, the crossing at the "
-        f"midpoint, a linear SVM normal on 6×6×6 voxels, wood on 0.5 µm voxels), {p1.attrs['rays']} rays on each "
-        f"of the first {p1.sizes.get('realisation', 1)} of Table 1's woods (`results/{scale_dir}/paper-method/`). "
-        "Both methods are pooled over the rays both traced, and the differences are paired: the same woods and the "
-        "same rays (ray i of a beam enters at the same point "
-        f"whatever the total), {methods[0]['rays_common']} per wood, 95 % intervals from resampling the woods (paired, Student t). "
-        f"A difference here comes from the method alone; one between `{settings['method']}` and the published numbers that "
-        "is not here comes from the wood model or the statistics.")
-    add("")
-    L.extend(method_markdown(methods))
-    add("")
-    add(method_summary(methods))
-    add("")
-    add("## Against the measured samples")
-    add("")
-    add("The paper measured the haze of two samples: birch-like TW 0.7 mm thick and balsa-like TW 1 mm thick. "
-        "A hazemeter measures in air, so each is traced twice: angles inside the sample (as Table 1) and after "
-        "refraction into air at the exit face (`trace.exit: air`; a deflection grows about 1.5× on leaving). "
-        "Balsa is run with the paper's 1.2 µm wall and the preset's 1.4 µm; its quoted cell size 35.2 is read "
-        "as a cell diameter in µm (pipeline/presets/balsa.yaml). Intervals as in Table 1 "
-        f"({experiment[0]['realisations']} woods × {experiment[0]['rays']} rays).")
-    add("")
-    L.extend(experiment_markdown(experiment))
-    add("")
-    radius = base / "experiment" / "balsa-1mm-radius.zarr"
+        cells = (name, exp, why, _agreement(name, d.all_effects[name], d.tables))
+        out.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    return out + ["", "The comparison above is with what geometrical optics predicts; the source's own published "
+                  "numbers (docs/methods.md#the-source-s-published-numbers) are compared in \"Against the source\" "
+                  "below.", ""]
+
+
+def voxel_error(d: ReportData) -> list[str]:
+    """Table 1 traced with `accurate` beside `exact` (none when not traced)."""
+    if not d.voxel_rows:
+        return []
+    r0, v1 = d.voxel_rows[0], d.voxel_tables["study-1"]
+    return [f"## `{r0['other']}` beside `{r0['ref']}`: the voxel error on the wood itself", "",
+            f"Table 1 as traced with `{r0['other']}` (wood on "
+            f"{traced_voxel_um_of(json.loads(v1.attrs['scenes'])[0]):g} µm voxels, `results/{d.scale_dir}/accurate/`), "
+            f"beside the same values traced with `{r0['ref']}` on the same "
+            f"{r0['realisations_common']} woods (the first of Table 1's) with the same "
+            f"{r0['rays_common']} rays each, both pooled over those rays: the paired difference is the "
+            "voxel method's error on each Table 1 scene, 95 % intervals from resampling the woods (paired, Student t).",
+            ""] + method_markdown(d.voxel_rows) + ["", method_summary(d.voxel_rows), ""]
+
+
+def paper_method(d: ReportData) -> list[str]:
+    p1, method = d.paper_tables["study-1"], d.settings["method"]
+    return [f"## The paper's method beside `{method}`", "",
+            f"Table 1 traced again with the paper's method (`--method paper`: 2-voxel steps, the crossing at the "
+            f"midpoint, a linear SVM normal on 6×6×6 voxels, wood on 0.5 µm voxels), {p1.attrs['rays']} rays on each "
+            f"of the first {p1.sizes.get('realisation', 1)} of Table 1's woods (`results/{d.scale_dir}/paper-method/`). "
+            "Both methods are pooled over the rays both traced, and the differences are paired: the same woods and the "
+            "same rays (ray i of a beam enters at the same point "
+            f"whatever the total), {d.methods[0]['rays_common']} per wood, 95 % intervals from resampling the woods "
+            f"(paired, Student t). A difference here comes from the method alone; one between `{method}` and the "
+            "published numbers that is not here comes from the wood model or the statistics.", ""] \
+        + method_markdown(d.methods) + ["", method_summary(d.methods), ""]
+
+
+def measured_samples(d: ReportData) -> list[str]:
+    out = ["## Against the measured samples", "",
+           "The paper measured the haze of two samples: birch-like TW 0.7 mm thick and balsa-like TW 1 mm thick. "
+           "A hazemeter measures in air, so each is traced twice: angles inside the sample (as Table 1) and after "
+           "refraction into air at the exit face (`trace.exit: air`; a deflection grows about 1.5× on leaving). "
+           "Balsa is run with the paper's 1.2 µm wall and the preset's 1.4 µm; its quoted cell size 35.2 is read "
+           "as a cell diameter in µm (pipeline/presets/balsa.yaml). Intervals as in Table 1 "
+           f"({d.experiment[0]['realisations']} woods × {d.experiment[0]['rays']} rays).", ""]
+    out += experiment_markdown(d.experiment) + [""]
+    radius = d.base / "experiment" / "balsa-1mm-radius.zarr"
     if radius.exists():
-        add(balsa_reading_sentence(open_dataset(radius), open_dataset(base / "experiment" / "balsa-1mm.zarr")))
-        add("")
-    add("The table gives what a hazemeter would read on these model woods; the source's measured hazes are set "
-        "beside them in \"Against the source\" above.")
-    add("")
-    add("## Fibre tips and scattering along L")
-    add("")
-    add("In the generator (docs/methods.md#fibre-ends) a fibre is straight along L and ends in a flat plate, so its walls are "
-        "almost parallel to L (docs/methods.md, \"Fibre tips\", measures their normals) and FWHM_L comes mostly from "
-        "the ray cells. Birch fibres end in long tapering tips that overlap their neighbours'. With "
-        "`fibre_tip_um` = λ, consecutive fibres of a file overlap over 2λ and meet along an oblique wall inclined "
-        "to L by atan(w/λ), w the lumen's half-width (docs/methods.md, \"Fibre tips\"). The Table 1 default wood "
-        "(birch, 1 mm, ΔRI 0.01) with and without ray cells, over λ (`make fibre-tips`; "
-        f"{tips[0]['realisations']} woods × {tips[0]['rays']} rays, the same woods as Table 1; changes are paired "
-        "against flat ends, 95 % intervals from resampling the woods):")
-    add("")
-    L.extend(fibre_tip_markdown(tips))
-    add("")
+        out += [balsa_reading_sentence(open_dataset(radius), open_dataset(d.base / "experiment" / "balsa-1mm.zarr")),
+                ""]
+    return out + ["The table gives what a hazemeter would read on these model woods; the source's measured hazes "
+                  "are set beside them in \"Against the source\" above.", ""]
+
+
+def fibre_tips(d: ReportData) -> list[str]:
+    tips, woods = d.tips, d.woods
+    out = ["## Fibre tips and scattering along L", "",
+           "In the generator (docs/methods.md#fibre-ends) a fibre is straight along L and ends in a flat plate, so "
+           "its walls are almost parallel to L (docs/methods.md, \"Fibre tips\", measures their normals) and FWHM_L "
+           "comes mostly from the ray cells. Birch fibres end in long tapering tips that overlap their neighbours'. "
+           "With `fibre_tip_um` = λ, consecutive fibres of a file overlap over 2λ and meet along an oblique wall "
+           "inclined to L by atan(w/λ), w the lumen's half-width (docs/methods.md, \"Fibre tips\"). The Table 1 "
+           "default wood (birch, 1 mm, ΔRI 0.01) with and without ray cells, over λ (`make fibre-tips`; "
+           f"{tips[0]['realisations']} woods × {tips[0]['rays']} rays, the same woods as Table 1; changes are paired "
+           "against flat ends, 95 % intervals from resampling the woods):", ""]
+    out += fibre_tip_markdown(tips) + [""]
     tip_text = fibre_tip_sentence(tips)
     flat = ("so its woods and numbers are the ones above at λ = 0" if tips[0]["realisations"] == woods["study-1"]
             else f"so the rows at λ = 0 are its default wood on the first {tips[0]['realisations']} of its "
                  f"{woods['study-1']} woods")
-    add(tip_text[0].upper() + tip_text[1:] + " Table 1 keeps flat fibre ends "
-        f"(λ = 0, docs/methods.md#fibre-tips), {flat}.")
-    add("")
-    add("## The virtual camera (Figure 5)")
-    add("")
-    add(f"A thin-lens camera looks through a {float(camera['thickness_um'].max()) / 1000:g} mm birch TW sheet "
-        f"at a character card just behind it ({camera.attrs['samples_per_pixel']} aperture samples per pixel). "
-        "Contrast is Michelson's, (light − dark)/(light + dark), between the pixels the ideal thin-lens "
-        "image shows light and dark; the control is the same scene through an index-matched sheet.")
-    add("")
-    L.extend(camera_markdown(camera_rows(camera)))
-    add("")
-    add(f"![camera images]({fig}/camera.png)")
-    add("")
+    return out + [tip_text[0].upper() + tip_text[1:] + " Table 1 keeps flat fibre ends "
+                  f"(λ = 0, docs/methods.md#fibre-tips), {flat}.", ""]
+
+
+def camera_section(d: ReportData) -> list[str]:
+    camera = d.camera
+    out = ["## The virtual camera (Figure 5)", "",
+           f"A thin-lens camera looks through a {float(camera['thickness_um'].max()) / 1000:g} mm birch TW sheet "
+           f"at a character card just behind it ({camera.attrs['samples_per_pixel']} aperture samples per pixel). "
+           "Contrast is Michelson's, (light − dark)/(light + dark), between the pixels the ideal thin-lens "
+           "image shows light and dark; the control is the same scene through an index-matched sheet.", ""]
+    out += camera_markdown(camera_rows(camera)) + ["", f"![camera images]({d.fig}/camera.png)", ""]
     method = camera.attrs.get("tracing_method", "fast")
-    fast_path = base / "camera" / "fast" / "figure5.zarr"
+    fast_path = d.base / "camera" / "fast" / "figure5.zarr"
     if method == "exact" and fast_path.exists():
         fast = open_dataset(fast_path)
-        add("The images above are traced with `exact`, on the wood's own surfaces. The same aperture samples "
-            f"({fast.attrs['samples_per_pixel']} a pixel) traced with `fast` on 0.5 µm voxels "
-            "(`make camera-fast`), beside them:")
-        add("")
-        L.extend(camera_methods_markdown(camera_rows(fast), camera_rows(camera)))
-        add("")
-    else:
-        add(f"The images above are traced with `{method}`.")
-        add("")
-    if len(maps) == len(MAPS):
-        add("## Design maps: how well must the polymer match?")
-        add("")
-        add(f"Haze and FWHM_R over thickness × ΔRI (`make design`, `exact`, {d0.attrs['realisations']} woods × "
+        return out + ["The images above are traced with `exact`, on the wood's own surfaces. The same aperture "
+                      f"samples ({fast.attrs['samples_per_pixel']} a pixel) traced with `fast` on 0.5 µm voxels "
+                      "(`make camera-fast`), beside them:", ""] \
+            + camera_methods_markdown(camera_rows(fast), camera_rows(camera)) + [""]
+    return out + [f"The images above are traced with `{method}`.", ""]
+
+
+def design_section(d: ReportData) -> list[str]:
+    if not d.maps:
+        return []
+    d0 = next(iter(d.maps.values()))
+    return ["## Design maps: how well must the polymer match?", "",
+            f"Haze and FWHM_R over thickness × ΔRI (`make design`, `exact`, {d0.attrs['realisations']} woods × "
             f"{d0.attrs['rays']} rays a cell; docs/methods.md#design-maps). At ΔRI = 0 haze is 0 exactly. The "
             "largest |ΔRI| that keeps haze at or below 10 %, interpolated on the maps (`twray design` answers "
             "the same for any thickness and limit). † marks an edge below the map's smallest traced |ΔRI| "
             f"({float(abs(d0['delta_ri']).min()):g}): it is read on the straight line from haze 0 at ΔRI = 0, which "
-            "no cell traced, so it has no interval; add smaller values to the maps' `vary.delta_ri` (only the new cells are traced) to "
-            "measure it.")
-        add("")
-        L.extend(window_table(maps))
-        add("")
-        add(f"![design maps]({fig}/design-maps.png)")
-        add(f"![ΔRI windows]({fig}/design-windows.png)")
-        add("")
-    L.extend(wave_section(results, scale_dir, fig))
-    add("## Speed against accuracy")
-    add("")
-    add(f"From `make tradeoff` ({len(tradeoff['point'])} settings, each traced cold in its own process on a "
-        f"{tradeoff.attrs['machine_cpus']}-core host; details in [TRADEOFF.md](TRADEOFF.md)). The cheapest "
-        "swept setting that meets each precision target, the error being √(bias² + CI half-width²) against "
-        "exact optics of the same rays (the lattice tracer for lattices, `exact` for wood):")
-    add("")
-    L.extend(tradeoff_markdown(tradeoff))
-    add("")
-    add(f"![speed against accuracy]({fig}/tradeoff.png)")
-    add("")
-    add("## Reproducing each item")
-    add("")
-    st = bench["study"]
-    cam = bench["camera"]["figure5"]
-    add("| item | command | cost on 2 cores (from `results/bench.json` or the dataset) |")
-    add("|---|---|---|")
+            "no cell traced, so it has no interval; add smaller values to the maps' `vary.delta_ri` (only the new "
+            "cells are traced) to measure it.", ""] + window_table(d.maps) + [
+        "", f"![design maps]({d.fig}/design-maps.png)", f"![ΔRI windows]({d.fig}/design-windows.png)", ""]
+
+
+def speed_against_accuracy(d: ReportData) -> list[str]:
+    tradeoff = d.tradeoff
+    return ["## Speed against accuracy", "",
+            f"From `make tradeoff` ({len(tradeoff['point'])} settings, each traced cold in its own process on a "
+            f"{tradeoff.attrs['machine_cpus']}-core host; details in [TRADEOFF.md](TRADEOFF.md)). The cheapest "
+            "swept setting that meets each precision target, the error being √(bias² + CI half-width²) against "
+            "exact optics of the same rays (the lattice tracer for lattices, `exact` for wood):", ""] \
+        + tradeoff_markdown(tradeoff) + ["", f"![speed against accuracy]({d.fig}/tradeoff.png)", ""]
+
+
+def reproducing(d: ReportData) -> list[str]:
+    """Each item's command and its cost, from results/bench.json or the dataset."""
+    st, cam = d.bench["study"], d.bench["camera"]["figure5"]
+    out = ["## Reproducing each item", "", "| item | command | cost on 2 cores (from `results/bench.json` or the dataset) |",
+           "|---|---|---|"]
+    add = out.append
     if "table1_quick" in st:
         add(f"| Table 1, the quick start (the paper's samples, 5 woods, 50 rays a wood) | `make table1` | "
-            f"{_minutes(st['table1_quick']['cold_s'])} cold, {_minutes(st['table1_quick']['warm_s'])} when cached |")
+            f"{minutes_text(st['table1_quick']['cold_s'])} cold, {minutes_text(st['table1_quick']['warm_s'])} when cached |")
     add(f"| Table 1, a tenth of the thickness (tests) | `make table1 SCALE=small` | "
-        f"{_minutes(st['table1_small']['cold_s'])} cold, {_minutes(st['table1_small']['warm_s'])} when cached |")
-    add(f"| the measured samples | `make experiment SCALE=paper YES=1` | {_minutes(st['experiment_paper']['cold_s'])} cold |"
+        f"{minutes_text(st['table1_small']['cold_s'])} cold, {minutes_text(st['table1_small']['warm_s'])} when cached |")
+    add(f"| the measured samples | `make experiment SCALE=paper YES=1` | {minutes_text(st['experiment_paper']['cold_s'])} cold |"
         if "experiment_paper" in st else "| the measured samples | `make experiment SCALE=paper YES=1` | not recorded |")
-    add(f"| fibre tips, with and without ray cells | `make fibre-tips SCALE=paper YES=1` | {_minutes(st['fibre_tips_paper']['cold_s'])} "
+    add(f"| fibre tips, with and without ray cells | `make fibre-tips SCALE=paper YES=1` | {minutes_text(st['fibre_tips_paper']['cold_s'])} "
         + ("(flat ends cached by Table 1) |" if st["fibre_tips_paper"].get("flat_ends_cached", True) else "cold |")
         if "fibre_tips_paper" in st
         else "| fibre tips, with and without ray cells | `make fibre-tips SCALE=paper YES=1` | not recorded |")
     if "table1_paper_method" in st:
         pm = st["table1_paper_method"]
-        add(f"| Table 1, the paper's method | `make table1-paper-method YES=1` | {_minutes(pm['cold_s'])} cold on "
+        add(f"| Table 1, the paper's method | `make table1-paper-method YES=1` | {minutes_text(pm['cold_s'])} cold on "
             f"{pm['cores']} cores |")
     if "table1_paper" in st:
         add(f"| Table 1, this report's scale | `make table1 SCALE=paper YES=1` | "
-            f"{_minutes(st['table1_paper']['cold_s'])} cold |")
+            f"{minutes_text(st['table1_paper']['cold_s'])} cold |")
     else:
         add("| Table 1, this report's scale | `make table1 SCALE=paper YES=1` | not recorded |")
-    exact_cam = bench["camera"].get("figure5_exact")
+    exact_cam = d.bench["camera"].get("figure5_exact")
     if exact_cam:
-        add(f"| Figure 5 (`exact`) | `make camera SCALE=paper YES=1` | {_minutes(exact_cam['wall_s'])} cold |")
-    add(f"| Figure 5 with `fast` | `make camera-fast` | {_minutes(cam['cold_s'])} cold |")
+        add(f"| Figure 5 (`exact`) | `make camera SCALE=paper YES=1` | {minutes_text(exact_cam['wall_s'])} cold |")
+    add(f"| Figure 5 with `fast` | `make camera-fast` | {minutes_text(cam['cold_s'])} cold |")
     if "design_paper" in st:
-        add(f"| design maps | `make design SCALE=paper YES=1` | {_minutes(st['design_paper']['cold_s'])} cold |")
-    add(f"| speed against accuracy | `make tradeoff` | {_minutes(float(tradeoff.attrs['seconds']))} |")
+        add(f"| design maps | `make design SCALE=paper YES=1` | {minutes_text(st['design_paper']['cold_s'])} cold |")
+    add(f"| speed against accuracy | `make tradeoff` | {minutes_text(float(d.tradeoff.attrs['seconds']))} |")
     add("| figures | `make figures` | about 1 min (sections and trajectories are computed) |")
     add("| this report | `make report` | about 30 s (the bootstraps of the effects and the methods) |")
-    add("")
-    add("## Where twray differs from the paper, and why")
-    add("")
-    if settings["method"] == "exact":
+    return out + [""]
+
+
+def differences(d: ReportData) -> list[str]:
+    """Where twray differs from the paper, and why."""
+    out = ["## Where twray differs from the paper, and why", ""]
+    add = out.append
+    woods, method = d.woods, d.settings["method"]
+    if method == "exact":
         add("- **Method.** Table 1 here uses `exact`: rays meet the model's own wall surfaces (the inequalities "
             "the generator decides each point's phase by), each crossing found to 1e-9 µm with a proven step "
             "bound and its normal from the model itself (docs/methods.md#the-exact-method). No voxel enters. "
@@ -441,7 +433,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
             "methods' error on these very scenes is the `accurate` table above (and results/accuracy.md on "
             "lattices).")
     else:
-        add(f"- **Method.** Table 1 here uses `{settings['method']}`: exact voxel traversal (no wall skipped) and "
+        add(f"- **Method.** Table 1 here uses `{method}`: exact voxel traversal (no wall skipped) and "
             "normals from a Gaussian-smoothed wall indicator, on wood generated at half the paper's voxel. "
             "The paper's method (2-voxel steps, midpoint crossing, a linear SVM on 6×6×6 voxels) is "
             "`--method paper`; against exact optics on thin-walled lattices it is several times less accurate "
@@ -456,16 +448,16 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     add("- **Wood.** The microstructure model follows docs/methods.md#the-microstructure-model; every value is "
         + (f"{min(woods.values())}" if min(woods.values()) == max(woods.values())
            else f"{min(woods.values())}-{max(woods.values())}")
-        + " realisations of it (its study's woods), pooled. Switching ray cells or vessels off leaves every other structure where it was "
-        "(tests/test_microstructure.py), so studies 5-1 and 5-2 change one factor each.")
-    fine = fine_voxel_sentence(fine_voxel_rows(results, n_boot=n_boot))
-    add(_convergence_sentence(results, fine_done=bool(fine), of_voxels=settings["method"] == "exact"))
+        + " realisations of it (its study's woods), pooled. Switching ray cells or vessels off leaves every other "
+        "structure where it was (tests/test_microstructure.py), so studies 5-1 and 5-2 change one factor each.")
+    fine = fine_voxel_sentence(fine_voxel_rows(d.results, n_boot=d.n_boot))
+    add(_convergence_sentence(d.results, fine_done=bool(fine), of_voxels=method == "exact"))
     if fine:
         add(fine)
     add("- **Angles.** Measured inside the sample, as the paper's models do; a hazemeter measures in air "
         "(`trace.exit: air` refracts each ray out of the exit face).")
-    add("")
-    return "\n".join(L)
+    return out + [""]
+
 
 def _convergence_sentence(results: Path, *, fine_done: bool = False, of_voxels: bool = False) -> str:
     """What `make convergence` found (results/convergence.zarr), or that it has not run; ``of_voxels``:

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from .analysis import ESTIMATORS, SLUG, FwhmSpec, fwhm
-from .effects import per_ray, study_dimension
-from .figures import value_label
+from .effects import per_ray
+from .result_sets import study_dimension, value_label
 from .publish import open_dataset
 from .optics.interface import TRANSMITTED
 from .report_geometry import geometry_section

@@ -3,11 +3,13 @@ the measured samples, the fibre tips and the trends (numbers from :mod:`pipeline
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 
-from .effects import Effect, study_dimension
+from .effects import TRADEOFF_TARGETS, Effect, cheapest_meeting, setting_label
+from .result_sets import study_dimension
 
 def _f(x, nd=2) -> str:
     return f"{x:.{nd}f}"
@@ -173,3 +175,51 @@ def effects_markdown(all_effects: dict) -> list[str]:
             lines.append(f"| {name} | {e0.parameter} {e0.reference} → {value} | {_effect_cell(q['FWHM_R'])} | "
                          f"{_effect_cell(q['FWHM_L'])} | {_effect_cell(q['haze'])} |")
     return lines
+
+
+def camera_markdown(rows: list[dict]) -> list[str]:
+    lines = ["| image | focal length (mm) | gap (µm) | ΔRI | object | interfaces per ray | contrast "
+             "(ideal) | RMS error vs ideal |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['config']} | {r['focal_mm']:g} | {r['gap_um']:g} | {r['delta_ri']:.3g} | "
+                     f"“{r['object']}”, {r['object_size_mm']:g} mm | {r['interfaces_per_ray']:.1f} | "
+                     f"{r['contrast']:.2f} ({r['ideal_contrast']:.2f}) | {r['rmse']:.3f} |")
+    return lines
+
+
+def camera_methods_markdown(fast: list[dict], exact: list[dict]) -> list[str]:
+    """Each image traced with `fast` and with `exact` on the same aperture samples."""
+    lines = ["| image | interfaces per ray, fast / exact | contrast, fast / exact (ideal) | "
+             "RMS error vs ideal, fast / exact |", "|---|---|---|---|"]
+    for f, e in zip(fast, exact):
+        lines.append(f"| {f['config']} | {f['interfaces_per_ray']:.1f} / {e['interfaces_per_ray']:.1f} | "
+                     f"{f['contrast']:.2f} / {e['contrast']:.2f} ({e['ideal_contrast']:.2f}) | "
+                     f"{f['rmse']:.3f} / {e['rmse']:.3f} |")
+    return lines
+
+
+def tradeoff_markdown(ds) -> list[str]:
+    """The cheapest swept setting (cold wall time) meeting each of the two looser targets, per scene."""
+    targets = TRADEOFF_TARGETS[1:]
+    lines = ["| scene | " + " | ".join(t for t, _, _ in targets) + " |", "|---|" + "---|" * len(targets)]
+    for scene in json.loads(ds.attrs["scenes"]):
+        sel = ds.where((ds["scene"] == scene) & np.isfinite(ds["haze_error"]), drop=True)
+        rows = [{"method": str(p["method"].values), "voxel_um": float(p["voxel_um"]), "rays": int(p["rays"]),
+                 "step_vox": float(p["step_vox"]), "wall_s": float(p["wall_time"]),
+                 "haze_error": float(p["haze_error"]),
+                 "fwhm_r_rel_error": float(p["FWHM_R_error"] / p["reference_FWHM_R"])}
+                for p in (sel.isel(point=k) for k in range(sel.sizes.get("point", 0)))]
+        cells = []
+        for _, h, f in targets:
+            b = cheapest_meeting(rows, h, f) if rows else None
+            if b is None:
+                cells.append("none of the swept settings" if rows else "—")
+                continue
+            cells.append(f"{setting_label(b['method'], b['voxel_um'], b['rays'], b['step_vox'])}: {b['wall_s']:.1f} s "
+                         f"(haze ±{100 * b['haze_error']:.1f} pts, FWHM_R ±{100 * abs(b['fwhm_r_rel_error']):.0f} %)")
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def minutes_text(s: float) -> str:
+    return f"{s / 60:.1f} min" if s >= 90 else f"{s:.0f} s"

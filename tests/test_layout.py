@@ -16,7 +16,7 @@ FLOORS = [
     {"pipeline.microstructure"},
     {"pipeline.optics"},
     {"pipeline.limits", "pipeline.study", "pipeline.camera", "pipeline.wave"},
-    {"pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.report_tables", "pipeline.report_source",
+    {"pipeline.result_sets", "pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.report_tables", "pipeline.report_source",
      "pipeline.report_geometry", "pipeline.report_wave", "pipeline.inventory",
      "pipeline.trace_job",
      "pipeline.cluster", "pipeline.design"},

@@ -16,10 +16,11 @@ from pipeline.cli import main
 
 # What the report is made of, imported here only (update these lines if the modules move):
 # pipeline.effects computes the report's numbers, pipeline.report(_tables) writes them as Markdown.
-from pipeline.effects import (FIBRE_TIPS, TABLE1, TRADEOFF_TARGETS, cheapest_meeting, effects, load_table1,
-                              method_rows, per_ray, reduce_rays, table1_rows)
+from pipeline.effects import (FIBRE_TIPS, TRADEOFF_TARGETS, cheapest_meeting, effects, method_rows, per_ray,
+                              reduce_rays, table1_rows)
 from pipeline.figures import sections, structure_label, trajectories
 from pipeline.publish import open_dataset
+from pipeline.result_sets import TABLE1, load_table1
 from pipeline.microstructure.model import tip_wall_angle_deg
 from pipeline.optics.interface import TRANSMITTED
 from pipeline.params import build_params
@@ -683,3 +684,27 @@ def test_the_fine_voxel_run_is_study_5_1_wood_1_on_a_quarter_of_the_study_voxel(
             assert {k: v for k, v in a["wood"].items() if k != "fibre_tip_um"} == b["wood"]
             assert (a["seed"], a["beam_um"], a["thickness_um"], a["delta_ri"]) == \
                 (b["seed"], b["beam_um"], b["thickness_um"], b["delta_ri"])
+
+
+def test_a_report_section_is_built_alone_from_the_data_it_reads():
+    """Each section is a function of the report's data: the costs table from a bench record alone,
+    the design sections empty without the maps (as when `make design` has not run)."""
+    import dataclasses
+
+    import xarray as xr
+
+    from pipeline.report import ReportData, design_section, glance, reproducing
+
+    bench = {"study": {"table1_small": {"cold_s": 17.9, "warm_s": 3.2}, "fibre_tips_paper": {"cold_s": 91.0},
+                       "design_paper": {"cold_s": 1500.0}},
+             "camera": {"figure5": {"cold_s": 300.0}}}
+    fields = {f.name: None for f in dataclasses.fields(ReportData) if f.name != "fig"}
+    d = ReportData(**{**fields, "bench": bench, "tradeoff": xr.Dataset(attrs={"seconds": 960.0}), "maps": {}})
+    lines = reproducing(d)
+    assert lines[0] == "## Reproducing each item"
+    assert "| Table 1, a tenth of the thickness (tests) | `make table1 SCALE=small` | 18 s cold, 3 s when cached |" in lines
+    assert "| fibre tips, with and without ray cells | `make fibre-tips SCALE=paper YES=1` | 1.5 min (flat ends cached by Table 1) |" in lines
+    assert "| design maps | `make design SCALE=paper YES=1` | 25.0 min cold |" in lines
+    assert "| the measured samples | `make experiment SCALE=paper YES=1` | not recorded |" in lines
+    assert "| speed against accuracy | `make tradeoff` | 16.0 min |" in lines
+    assert glance(d) == [] and design_section(d) == []

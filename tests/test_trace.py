@@ -96,11 +96,11 @@ def test_the_committed_datasets_read_back_the_voxel_they_were_traced_on():
 
     import xarray as xr
 
-    from pipeline.figures import traced_voxel
+    from pipeline.result_sets import traced_voxel_um_of
 
     with xr.open_zarr("results/paper/accurate/study-1.zarr") as ds:
         scenes = json.loads(ds.attrs["scenes"])
-    assert {traced_voxel(s) for s in scenes} == {0.25}  # accurate: 0.5 µm scenes on 0.25 µm voxels
+    assert {traced_voxel_um_of(s) for s in scenes} == {0.25}  # accurate: 0.5 µm scenes on 0.25 µm voxels
     with xr.open_zarr("results/paper/study-1.zarr") as ds:
         assert json.loads(ds.attrs["trace_settings"])["method"] == "exact"
         assert all(s["settings"]["voxel"] is None for s in json.loads(ds.attrs["scenes"]))

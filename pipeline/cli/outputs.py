@@ -157,7 +157,8 @@ def _need(path: Path, field: str, value: str, command: str) -> None:
 
 
 def cmd_figures(args) -> int:
-    from ..figures import TABLE1, make_figures
+    from ..figures import make_figures
+    from ..result_sets import TABLE1
 
     which = None
     if args.only is not None:
@@ -186,7 +187,8 @@ def cmd_figures(args) -> int:
 
 def cmd_report(args) -> int:
     from ..cache import atomic_write
-    from ..report import TABLE1, build_report, figure_links
+    from ..report import build_report, figure_links
+    from ..result_sets import TABLE1
 
     results = Path(args.results)
     base = results / args.scale
