@@ -180,14 +180,19 @@ def opening(d: ReportData) -> list[str]:
             "Figures: `make figures` → `results/figures/`.", ""]
 
 
+def _maps_traced(d: ReportData) -> str:
+    """How the design maps were traced, as the report says it."""
+    d0 = next(iter(d.maps.values()))
+    return f"`make design`, `exact`, {d0.attrs['realisations']} woods × {d0.attrs['rays']} rays a cell"
+
+
 def glance(d: ReportData) -> list[str]:
     """The designer's first screen: the design maps' traced cells (none without the maps)."""
     if not d.maps:
         return []
     d0 = next(iter(d.maps.values()))
     return ["## At a glance: haze and FWHM_R of TW", "",
-            f"What a sample scatters, from the design maps (`make design`, `exact`, {d0.attrs['realisations']} "
-            f"woods × {d0.attrs['rays']} rays a cell, beam at normal incidence; ΔRI = wall − polymer index, polymer "
+            f"What a sample scatters, from the design maps ({_maps_traced(d)}, beam at normal incidence; ΔRI = wall − polymer index, polymer "
             f"{float(json.loads(d0.attrs['scenes'])[0]['ri_polymer']):g}). Each cell: in air (what a "
             "hazemeter sees) / inside the sample (the paper's angles). Haze: share of the light deviated by more "
             "than 2.5°. Between cells, and with intervals, `twray design --thickness-mm T --delta-ri D` reads "
@@ -360,8 +365,7 @@ def design_section(d: ReportData) -> list[str]:
         return []
     d0 = next(iter(d.maps.values()))
     return ["## Design maps: how well must the polymer match?", "",
-            f"Haze and FWHM_R over thickness × ΔRI (`make design`, `exact`, {d0.attrs['realisations']} woods × "
-            f"{d0.attrs['rays']} rays a cell; docs/methods.md#design-maps). At ΔRI = 0 haze is 0 exactly. The "
+            f"Haze and FWHM_R over thickness × ΔRI ({_maps_traced(d)}; docs/methods.md#design-maps). At ΔRI = 0 haze is 0 exactly. The "
             "largest |ΔRI| that keeps haze at or below 10 %, interpolated on the maps (`twray design` answers "
             "the same for any thickness and limit). † marks an edge below the map's smallest traced |ΔRI| "
             f"({float(abs(d0['delta_ri']).min()):g}): it is read on the straight line from haze 0 at ΔRI = 0, which "
