@@ -74,7 +74,7 @@ def anisotropy(samples: int) -> dict:
     import numpy as np
 
     from pipeline.camera.lens import ideal_image, render_rows
-    from pipeline.camera.run import edge_widths
+    from pipeline.camera.dataset import edge_widths
     from pipeline.camera.scene import load_camera
     from pipeline.camera.targets import make_target
     from pipeline.optics.media import wood_medium

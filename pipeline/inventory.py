@@ -165,7 +165,7 @@ def remove(path: Path) -> None:
 
 def keys_in_use(files, scales, cache) -> set:
     """The keys of every entry the study and camera files need at ``scales``."""
-    from .camera.run import plan_blocks, plan_camera
+    from .camera.plan import plan_blocks, plan_camera
     from .camera.scene import load_camera
     from .optics.settings import traced_voxel_um
     from .params import ParameterError

@@ -6,7 +6,10 @@ import xarray as xr
 from PIL import Image
 
 from pipeline.camera.lens import Camera, Sheet, aperture_samples, ideal_image, render_rows, strata
-from pipeline.camera.run import compute, edge_widths, load_entry, plan_camera, write_outputs
+from pipeline.camera.dataset import edge_widths, write_outputs
+from pipeline.camera.graph import compute
+from pipeline.camera.plan import plan_camera
+from pipeline.camera.tasks import load_entry
 from pipeline.camera.scene import load_camera
 from pipeline.camera.targets import make_target
 from pipeline.cli import main
@@ -215,7 +218,7 @@ def test_an_image_that_stopped_part_way_keeps_its_row_blocks_and_the_rerun_rende
     import os
 
     from pipeline.cache import FAULT_ENV
-    from pipeline.camera.run import plan_blocks
+    from pipeline.camera.plan import plan_blocks
     from pipeline.runlog import RunFailed
 
     path = tmp_path / "cam.yaml"

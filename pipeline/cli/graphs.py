@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 from .. import limits
@@ -89,10 +88,7 @@ def _started(args, command: str) -> "limits.Estimate":
 
 
 def cmd_study(args) -> int:
-    from ..study.dataset import write_dataset
-    from ..study.plan import describe_plan, plan_study, report_table, summary_rows, target_met
-    from ..study.run import run_studies
-    from ..study.spec import at_target_cap, load_study
+    from ..study.run import StudyRequest, describe, run
 
     shard_rays = integer(args.shard_rays, "shard_rays", 1)
     if args.workers is not None:
@@ -102,65 +98,14 @@ def cmd_study(args) -> int:
     report = out_path(args.report, "report") if args.report is not None else None
     if report is not None and report.is_dir():
         raise ParameterError(f"`report` must be a file path, got report={args.report!r} (a folder)")
-    realisations = None if args.realisations is None else integer(args.realisations, "realisations", 1)
-    rays = None if args.rays is None else integer(args.rays, "rays", 1)
-    studies = [load_study(f, scale=args.scale, realisations=realisations, method=args.method, rays=rays)
-               for f in args.files]
-    names = [s.name for s in studies]
-    if len(set(names)) != len(names):
-        raise ParameterError(f"study files must have distinct names, got {names}")
-    unused = [s.name for s in studies if "voxel_um" in s.unused]
-    if unused:
-        print(f"twray study: `voxel_um` is unused in {', '.join(unused)}: method exact traces the model's own "
-              "surfaces, no voxels (it applies with --method fast, accurate or paper)", file=sys.stderr)
-    # What could never fit is refused before planning (which lists the wood's chunks).
-    # A target over woods may trace up to its cap of woods (over rays, study_estimate takes its cap of rays).
-    scenes = [sc for st in studies for sc in at_target_cap(st).all_scenes()]
-    fit = "use fewer rays, a narrower beam, larger voxels or a thinner sample"
-    started = _started(args, "study")
-    est = started + limits.study_estimate(scenes, shard_rays=shard_rays)
-    limits.check(est, what="`study`", yes=True, disk_path=args.cache, fit=fit)
-    t0 = time.perf_counter()
-    plans = [plan_study(s, args.cache, shard_rays=shard_rays) for s in studies]
-    todo = [plan.study.realisation(summ.scene_index, summ.realisation)
-            for plan in plans for summ in plan.summaries if not summ.cached]
-    more = [sc for st in studies for sc in at_target_cap(st).all_scenes() if sc.realisation >= st.realisations]
-    est = started + limits.study_estimate(todo + more, shard_rays=shard_rays)
-    if est.cpu_s >= limits.SHOW_ESTIMATE_S:
-        upto = f" (up to {len(more)} more at the targets' caps of woods)" if more else ""
-        print(f"twray study: estimate for the {len(todo)} value{'' if len(todo) == 1 else 's'} to compute{upto}: "
-              f"{est.text()}", file=sys.stderr)
-    if args.dry_run:
-        for plan in plans:
-            print("\n".join(describe_plan(plan)))
-        return 0
-    limits.check(est, what="`study`", yes=args.yes, disk_path=args.cache, fit=fit)
-    plans = run_studies(plans, args.cache, open_client=lambda: _cluster(args, "study"), shard_rays=shard_rays,
-                        progress=progress_mode(args.quiet), log=lambda line: print(line, file=sys.stderr))
-    for plan in plans:
-        out = write_dataset(plan, args.results)
-        st = plan.study
-        target = st.scenes[0].target
-        cap = f"max_realisations {target.max_realisations}" if target and target.over == "woods" else (
-            f"max_rays {target.max_rays}" if target else "")
-        unmet = (f", target_ci NOT met at {cap}" if st.scale == "paper"
-                 else f", target_ci not met at the {st.scale} scale's {cap}")
-        met = "" if target is None else (
-            ", target_ci met" if target_met(target, summary_rows(plan)) else unmet)
-        print(f"{out}: {st.title} (scale {st.scale}, {st.scenes[0].rays} rays x {st.realisations} "
-              f"realisation{'' if st.realisations == 1 else 's'}, {st.scenes[0].settings.method}{met})")
-        for row in summary_rows(plan):
-            traced = "" if st.scale == "paper" else f" ({row['thickness_traced_mm']:g} mm traced)"
-            print(f"  {row['label']}{traced}: FWHM_R {row['fwhm_r_deg']:.2f}°, "
-                  f"FWHM_L {row['fwhm_l_deg']:.2f}°, haze {100 * row['haze']:.1f} % "
-                  f"[{100 * row['haze_ci'][0]:.1f}, {100 * row['haze_ci'][1]:.1f}], "
-                  f"{row['n_transmitted']}/{row['n_rays']} transmitted")
-    if report is not None:
-        from ..cache import atomic_write
-
-        atomic_write(report, lambda tmp: tmp.write_text(report_table(plans)))
-        print(f"wrote {report}")
-    print(f"{len(plans)} studies in {time.perf_counter() - t0:.1f} s")
+    request = StudyRequest(
+        files=tuple(args.files), cache=args.cache, results=args.results, scale=args.scale, shard_rays=shard_rays,
+        realisations=None if args.realisations is None else integer(args.realisations, "realisations", 1),
+        method=args.method, rays=None if args.rays is None else integer(args.rays, "rays", 1),
+        dry_run=args.dry_run, yes=args.yes, report=report, progress=progress_mode(args.quiet),
+        started=_started(args, "study"))
+    outcome = run(request, open_client=lambda: _cluster(args, "study"))
+    print("\n".join(describe(outcome)))
     return 0
 
 
@@ -182,54 +127,17 @@ def add_camera(sub):
 
 
 def cmd_camera(args) -> int:
-    from ..camera.run import compute, load_entry, plan_blocks, plan_camera, write_outputs
-    from ..camera.scene import load_camera
+    from ..camera.run import CameraRequest, describe, render
 
     rows = integer(args.rows_per_task, "rows_per_task", 1)
     if args.workers is not None:
         integer(args.workers, "workers", 1)
     _absolute_paths(args)
     memory_limit(args.memory_limit)
-    study = load_camera(args.file, scale=args.scale, method=args.method)
-    fit = "use fewer pixels or samples, a smaller or thinner sheet, or larger voxels"
-    started = _started(args, "camera")
-    limits.check(started + limits.camera_estimate(study.images), what="`camera`", yes=True, disk_path=args.cache, fit=fit)
-    t0 = time.perf_counter()
-    entries = plan_camera(study, args.cache)
-    todo = [e for e in entries if not e.cached]
-    blocks = {e.key: plan_blocks(e, args.cache, rows) for e in todo}  # an interrupted run's are kept
-    left = [sum(b.hi - b.lo for b in blocks[e.key] if not b.cached) for e in todo]
-    est = started + limits.camera_estimate([e.config for e in todo], rows=left)
-    if est.cpu_s >= limits.SHOW_ESTIMATE_S:
-        print(f"twray camera: estimate for the {len(todo)} image{'' if len(todo) == 1 else 's'} to render "
-              f"(the part of the sheet its rays reach): {est.text()}", file=sys.stderr)
-    if args.dry_run:
-        for e in entries:
-            done = sum(b.cached for b in blocks.get(e.key, ()))
-            state = "cached" if e.cached else "to render" + (f", {done} of {len(blocks[e.key])} row blocks "
-                                                             "done" if done else "")
-            print(f"{study.name} {e.config.name}: {state} ({e.key[:12]})")
-        return 0
-    limits.check(est, what="`camera`", yes=args.yes, disk_path=args.cache, fit=fit)
-    if not all(e.cached for e in entries):
-        resumed = sum(b.cached for bs in blocks.values() for b in bs)
-        if resumed:
-            print(f"twray camera: {resumed} of {sum(len(bs) for bs in blocks.values())} row blocks were "
-                  "rendered by an earlier run and are read, not rendered", file=sys.stderr)
-        with _cluster(args, "camera") as client:
-            compute(entries, client, args.cache, rows_per_task=rows, progress=progress_mode(args.quiet))
-        entries = plan_camera(study, args.cache)
-    paths = write_outputs(study, entries, args.results)
-    print(f"{paths[0]}: {study.title} (scale {study.scale}, {study.images[0].camera.samples} "
-          f"samples per pixel, {study.images[0].settings.method})")
-    for e in entries:
-        d = load_entry(e)
-        c = e.config
-        n = d["image"].size * c.camera.samples
-        print(f"  {c.name}: f {c.camera.focal_mm:g} mm, m {c.camera.magnification:.4g}, "
-              + ("no sheet" if c.sheet is None else
-                 f"ΔRI {c.sheet.ri_wall - c.sheet.ri_polymer:.3g}, gap {c.sheet.gap_um:g} µm, "
-                 f"{float(d['interfaces_per_ray']):.1f} interfaces/ray")
-              + f", {int(d['lost'].sum())}/{n} samples lost")
-    print(f"wrote {len(paths)} files under {Path(args.results)} in {time.perf_counter() - t0:.1f} s")
+    request = CameraRequest(file=args.file, cache=args.cache, results=args.results, scale=args.scale,
+                            method=args.method, rows_per_task=rows, dry_run=args.dry_run, yes=args.yes,
+                            progress=progress_mode(args.quiet), started=_started(args, "camera"))
+    outcome = render(request, open_client=lambda: _cluster(args, "camera"),
+                     log=lambda line: print(line, file=sys.stderr))
+    print("\n".join(describe(outcome, args.results)))
     return 0
