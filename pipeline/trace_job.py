@@ -106,7 +106,22 @@ def medium_of(job: TraceJob):
                                                  params=job.wood) + limits.summary_estimate(rays)
 
 
-def run(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:
+def run(job: TraceJob, *, out: Path | None = None, yes: bool = False, progress: str = "off") -> tuple:
+    """``twray trace``'s one library call: check ``job`` and what it would cost (refused unless
+    ``yes`` past the confirmation threshold), trace it, and publish its rays to ``out`` (when given);
+    the RayResult [µm] and its summary."""
+    medium, centre, est = medium_of(job)
+    rays = job.rays if job.target is None else job.target.max_rays
+    limits.check(limits.startup(1) + est, what=f"`trace` of {rays} rays", yes=yes,
+                 fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
+                     "or a thinner sample")
+    result, summary = trace_medium(job, medium, centre, progress=progress)
+    if out is not None:
+        write_rays(result, summary, out, job_inputs(job, centre))
+    return result, summary
+
+
+def trace_medium(job: TraceJob, medium, centre, *, progress: str = "off") -> tuple:
     """Trace ``job`` through ``medium``: the RayResult [µm] and its summary (with the target's
     outcome, the seconds it took and, for generated wood, the voxels it generated)."""
     t0 = time.perf_counter()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .. import limits
 from ..progress import mode as progress_mode
 from ..params import ParameterError, build_params, parse_set
 from .args import YES_HELP, integer, number, out_path, subparser
@@ -66,16 +65,38 @@ def add_trace(sub):
 
 
 def cmd_trace(args) -> int:
+    from ..trace_job import check_rays_out, run, strict_json
+
+    if args.out is not None:
+        args.out = str(out_path(args.out))
+        check_rays_out(Path(args.out))
+    job = _trace_job(args)
+    _, summary = run(job, out=None if args.out is None else Path(args.out), yes=args.yes,
+                     progress=progress_mode(args.quiet))
+    if args.json:
+        print(strict_json(summary))
+        return 0
+    lo, hi = summary["haze_ci"]
+    target = job.target
+    met = "" if target is None else (
+        "; target_ci met" if summary["target_ci_met"] else f"; target_ci NOT met at max_rays {target.max_rays}")
+    print(f"{summary['n_transmitted']}/{summary['n_rays']} transmitted "
+          f"(method {summary['method']}, exit {summary['exit']}): "
+          f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}° ({job.fwhm.estimator}), "
+          f"haze {100 * summary['haze']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}], "
+          f"{summary['seconds']:.1f} s{met}")
+    return 0
+
+
+def _trace_job(args):
+    """``twray trace``'s arguments as a TraceJob (each checked, one line naming the field)."""
     from ..optics.references import reference
     from ..optics.settings import METHODS, Optics, check_method, settings_for
-    from ..trace_job import TraceJob, check_rays_out, job_inputs, medium_of, run, strict_json, write_rays
+    from ..trace_job import TraceJob
 
     voxel = number(args.voxel_um, "voxel_um")
     if not voxel > 0:
         raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel:g}")
-    if args.out is not None:
-        args.out = str(out_path(args.out))
-        check_rays_out(Path(args.out))
     optics = Optics.of_delta(number(args.ri_polymer, "ri_polymer"), number(args.delta_ri, "delta_ri"),
                              seed=integer(args.seed, "seed", 0),
                              n_outside=1.0 if args.incidence_deg is not None else None).validate()
@@ -126,29 +147,10 @@ def cmd_trace(args) -> int:
         if len(parts) != 2:
             raise ParameterError(f"`beam_origin_um` must be R,L [µm], got {args.beam_origin_um!r}")
         origin = tuple(number(v, "beam_origin_um") for v in parts)
-    job = TraceJob(settings=settings, optics=optics, rays=rays, beam_um=beam_um, voxel_um=voxel,
-                   seed=optics.seed, volume=args.volume, wood=wood, reference=ref, thickness_um=thickness_um,
-                   beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target,
-                   fwhm=fwhm_spec)
-    medium, centre, est = medium_of(job)
-    limits.check(limits.startup(1) + est, what=f"`trace` of {rays if target is None else target.max_rays} rays", yes=args.yes,
-                 fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
-                     "or a thinner sample")
-    result, summary = run(job, medium, centre, progress=progress_mode(args.quiet))
-    if args.out:
-        write_rays(result, summary, args.out, job_inputs(job, centre))
-    if args.json:
-        print(strict_json(summary))
-    else:
-        lo, hi = summary["haze_ci"]
-        met = "" if target is None else (
-            "; target_ci met" if summary["target_ci_met"] else f"; target_ci NOT met at max_rays {target.max_rays}")
-        print(f"{summary['n_transmitted']}/{summary['n_rays']} transmitted "
-              f"(method {summary['method']}, exit {summary['exit']}): "
-              f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}° ({fwhm_spec.estimator}), "
-              f"haze {100 * summary['haze']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}], "
-              f"{summary['seconds']:.1f} s{met}")
-    return 0
+    return TraceJob(settings=settings, optics=optics, rays=rays, beam_um=beam_um, voxel_um=voxel,
+                    seed=optics.seed, volume=args.volume, wood=wood, reference=ref, thickness_um=thickness_um,
+                    beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target,
+                    fwhm=fwhm_spec)
 
 
 def _fwhm_spec(name: str):
