@@ -127,3 +127,26 @@ def test_the_layout_check_sees_the_package():
     assert {"pipeline.optics.trace", "pipeline.study.plan", "pipeline.cli"} <= set(MODULES)
     assert "pipeline.versions" in EDGES["pipeline.provenance"]
     assert sum(len(t) for t in EDGES.values()) > 150
+
+
+def _functions():
+    """(module path, function, lines, a Numba kernel) of every function of the package."""
+    for path in sorted(ROOT.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                kernel = any(getattr(d.func if isinstance(d, ast.Call) else d, "id", None) in ("njit", "jit")
+                             or getattr(d.func if isinstance(d, ast.Call) else d, "attr", None) in ("njit", "jit")
+                             for d in node.decorator_list)
+                yield path.relative_to(ROOT.parent), node.name, node.end_lineno - node.lineno + 1, kernel
+
+
+MAX_FUNCTION_LINES = 120  # outside the Numba kernels (a kernel is one loop the compiler must see whole)
+MAX_COMMAND_LINES = 40  # a command parses its arguments, calls one library function and prints
+
+
+def test_functions_are_short_and_commands_shorter():
+    functions = list(_functions())
+    assert len(functions) > 500 and any(k for *_, k in functions)  # the check sees the package and its kernels
+    long = [f"{p}:{name} has {n} lines" for p, name, n, kernel in functions
+            if (not kernel and n > MAX_FUNCTION_LINES) or (name.startswith("cmd_") and n > MAX_COMMAND_LINES)]
+    assert not long, "split them by what they do:\n" + "\n".join(long)

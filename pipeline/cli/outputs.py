@@ -34,8 +34,6 @@ def add_cache(sub):
 
 
 def cmd_cache(args) -> int:
-    import json
-
     from .. import inventory
 
     cache = Path(args.cache)
@@ -44,27 +42,44 @@ def cmd_cache(args) -> int:
     if not cache.is_dir():
         raise ParameterError(f"`cache` must be an existing folder, got cache={str(cache)!r}")
     entries = inventory.scan(cache)
-    if args.action == "ls":
-        for e in entries:
-            if args.json:
-                print(json.dumps({"stage": e.stage, "key": e.key, "bytes": e.size, "path": str(e.path),
-                                  "about": e.about}))
-            else:
-                print(f"{e.stage:8s} {e.key or '-':24s} {limits.size(e.size):>9s}  {e.about or e.path.name}")
-        total = sum(e.size for e in entries)
-        print(f"{len(entries)} entries, {limits.size(total)} in {cache}", file=sys.stderr)
-        return 0
-    if args.action == "verify":
-        damaged = 0
-        for e in entries:
-            for path, why in inventory.verify(e):
-                print(f"{path}: {why}")
-                damaged += 1
-                if args.remove:
-                    inventory.remove(path)
-        print(f"{len(entries)} entries verified, {damaged} damaged"
-              f"{' (removed)' if args.remove and damaged else ''}", file=sys.stderr)
-        return 1 if damaged else 0
+    return {"ls": _cache_ls, "verify": _cache_verify, "gc": _cache_gc}[args.action](args, cache, entries)
+
+
+def _cache_ls(args, cache: Path, entries) -> int:
+    """Every entry (one JSON object a line with --json), and the total on stderr."""
+    import json
+
+    for e in entries:
+        if args.json:
+            print(json.dumps({"stage": e.stage, "key": e.key, "bytes": e.size, "path": str(e.path),
+                              "about": e.about}))
+        else:
+            print(f"{e.stage:8s} {e.key or '-':24s} {limits.size(e.size):>9s}  {e.about or e.path.name}")
+    total = sum(e.size for e in entries)
+    print(f"{len(entries)} entries, {limits.size(total)} in {cache}", file=sys.stderr)
+    return 0
+
+
+def _cache_verify(args, cache: Path, entries) -> int:
+    """Each damaged entry (removed with --remove); exit 1 if any."""
+    from .. import inventory
+
+    damaged = 0
+    for e in entries:
+        for path, why in inventory.verify(e):
+            print(f"{path}: {why}")
+            damaged += 1
+            if args.remove:
+                inventory.remove(path)
+    print(f"{len(entries)} entries verified, {damaged} damaged"
+          f"{' (removed)' if args.remove and damaged else ''}", file=sys.stderr)
+    return 1 if damaged else 0
+
+
+def _cache_gc(args, cache: Path, entries) -> int:
+    """Remove the entries no study or camera file uses (at the given scales), and leftovers."""
+    from .. import inventory
+
     files = args.files or sorted(str(f) for f in Path("studies").rglob("*.yaml"))
     if not files:
         raise ParameterError("`files` must name the study and camera files whose entries to keep "

@@ -6,6 +6,7 @@ import math
 import shutil
 import sys
 import time
+from pathlib import Path
 
 from .. import limits
 from ..progress import mode as progress_mode
@@ -72,9 +73,6 @@ def _materialise(args) -> int:
 
 
 def cmd_generate(args) -> int:
-    from ..microstructure.volume import WoodVolume
-    from ..publish import check_replaceable, publish, staged_path
-
     if args.materialise:
         return _materialise(args)
     if args.size_um is None:
@@ -87,9 +85,32 @@ def cmd_generate(args) -> int:
     workers = integer(args.workers, "workers", 1) if args.workers is not None else None
     grid = make_grid(size, number(args.voxel_um, "voxel_um"), origin, params)
     out = out_path(args.out)
-    check_replaceable(out, args.overwrite)
-    from ..cache import sweep_leftovers
+    t0 = time.perf_counter()
+    vol, n = _generate(args, params, grid, seed, chunks, workers, out)
+    dt = time.perf_counter() - t0
+    nvox = math.prod(grid.shape)
+    msg = (f"{out}: {params.species}, shape {grid.shape} (R, T, L) at {grid.voxel_um:g} µm, "
+           f"chunks {tuple(vol.chunks)}")
+    if args.lazy:
+        msg += ", lazy (chunks generated on first read)"
+    else:
+        from ..microstructure.volume import WoodVolume
 
+        msg += f", {n} chunks in {dt:.1f} s ({nvox / max(dt, 1e-9):.3g} voxels/s)"
+        if nvox <= 2 * 10**8:
+            msg += f", wall fraction {WoodVolume.open(out).wall_fraction():.3f}"
+    print(msg)
+    return 0
+
+
+def _generate(args, params, grid, seed: int, chunks, workers, out: Path):
+    """Check what the volume would cost, generate it staged (every chunk, unless --lazy) and publish
+    it at ``out``; the volume and the chunks generated."""
+    from ..cache import sweep_leftovers
+    from ..microstructure.volume import WoodVolume
+    from ..publish import check_replaceable, publish, staged_path
+
+    check_replaceable(out, args.overwrite)
     sweep_leftovers(out.parent)  # what generate runs interrupted before this one left
     nvox = math.prod(grid.shape)
     est = limits.startup(1, kernels=False) + limits.Estimate(0.0, 0.0, 4096.0)
@@ -101,7 +122,6 @@ def cmd_generate(args) -> int:
         print(f"twray generate: estimate {est.text()}", file=sys.stderr)
     out.parent.mkdir(parents=True, exist_ok=True)
     staged = staged_path(out)
-    t0 = time.perf_counter()
     try:
         vol = WoodVolume.create(staged, params, grid, seed=seed, chunks=chunks)
         n = 0
@@ -114,17 +134,7 @@ def cmd_generate(args) -> int:
         publish(staged, out, args.overwrite)
     finally:
         shutil.rmtree(staged, ignore_errors=True)
-    dt = time.perf_counter() - t0
-    msg = (f"{out}: {params.species}, shape {grid.shape} (R, T, L) at {grid.voxel_um:g} µm, "
-           f"chunks {tuple(vol.chunks)}")
-    if args.lazy:
-        msg += ", lazy (chunks generated on first read)"
-    else:
-        msg += f", {n} chunks in {dt:.1f} s ({nvox / max(dt, 1e-9):.3g} voxels/s)"
-        if nvox <= 2 * 10**8:
-            msg += f", wall fraction {WoodVolume.open(out).wall_fraction():.3f}"
-    print(msg)
-    return 0
+    return vol, n
 
 
 def cmd_slices(args) -> int:

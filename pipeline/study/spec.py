@@ -208,7 +208,41 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
     for k in ("vary",):
         if k not in data:
             raise ParameterError(f"{path}: `{k}` is required")
+    seed, n_real, n_file_rays = _counts(data, fail, scale, realisations, rays)
+    number = _numbers(data, fail)
+    base = {
+        "thickness_mm": number("thickness_mm", 1.0, "> 0 mm", lambda v: v > 0),
+        "delta_ri": number("delta_ri", 0.01, "in (-0.5, 0.5)", lambda v: abs(v) < 0.5),
+        "ri_polymer": number("ri_polymer", 1.49, f"in [{INDEX_RANGE[0]:g}, {INDEX_RANGE[1]:g}]",
+                             lambda v: INDEX_RANGE[0] <= v <= INDEX_RANGE[1]),
+    }
+    beam_um = number("beam_um", 150.0, "> 0 µm", lambda v: v > 0)
+    voxel_um = number("voxel_um", 0.5, "> 0 µm", lambda v: v > 0)
+    ref_base, wood, overrides = _wood_base(data, fail, where)
+    settings = _trace_settings(data, method, fail, where)
+    axes = [_axis(parameter, values, keys, ref_base, fail) for parameter, values, keys in _vary(data["vary"], fail)]
+    f = SCALES[scale]
+    n_rays = max(1, int(round(n_file_rays * f["rays"]))) if rays is None else rays
+    common = dict(base=base, wood=wood, ref_base=ref_base, overrides=overrides, axes=axes, scale=scale,
+                  voxel_um=voxel_um, settings=settings, where=where, fail=fail,
+                  scene=dict(seed=int(seed), voxel_um=voxel_um, rays=n_rays, beam_um=beam_um * f["beam"],
+                             settings=settings, fwhm=_fwhm(data.get("fwhm"), fail),
+                             target=(_target(data.get("target_ci"), n_rays, f["rays"], n_real, f["realisations"], fail)
+                                     if "target_ci" in data else None)))
+    scenes = [_scene(combo, **common) for combo in itertools.product(*(a.values for a in axes))]
+    first = axes[0]
+    dimension = first.dimension if len(axes) == 1 else " × ".join(a.dimension for a in axes)
+    title = data.get("title", path.stem)
+    if not isinstance(title, str):
+        fail(("title",), f"`title` must be a string, got {title!r}")
+    return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
+                 parameter=" × ".join(a.parameter for a in axes), dimension=dimension, units=first.units,
+                 long_name=first.long_name, scenes=tuple(scenes), realisations=n_real, axes=tuple(axes),
+                 unused=("voxel_um",) if "voxel_um" in data and settings.medium_kind == "surfaces" else ())
 
+
+def _numbers(data, fail):
+    """A reader of the file's finite numbers: number(key, default, rule, ok) -> float."""
     def number(key, default, rule, ok):
         v = data.get(key, default)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
@@ -216,7 +250,12 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         if not ok(v):
             fail((key,), f"`{key}` must be {rule}, got {key}={v!r}")
         return float(v)
+    return number
 
+
+def _counts(data, fail, scale: str, realisations, rays) -> tuple[int, int, int]:
+    """(seed, woods per value, the file's rays), each checked; the command line's ``realisations``
+    replaces the file's and the scale's cap; its ``rays`` is checked here."""
     seed = data.get("seed", 1)
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
         fail(("seed",), f"`seed` must be an integer in [0, 2**63), got {seed!r}")
@@ -231,42 +270,39 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
         n_real = realisations
     if seed + n_real > 2**63:
         fail(("seed",), f"`seed` + `realisations` must be below 2**63, got seed={seed}")
-    rays_override = rays
-    if rays_override is not None and (isinstance(rays_override, bool) or not isinstance(rays_override, int)
-                                      or rays_override < 1):
-        raise ParameterError(f"`rays` must be a positive integer, got rays={rays_override!r}")
-    rays = data.get("rays", 1000)
-    if isinstance(rays, bool) or not isinstance(rays, int) or rays < 1:
-        fail(("rays",), f"`rays` must be a positive integer, got {rays!r}")
-    base = {
-        "thickness_mm": number("thickness_mm", 1.0, "> 0 mm", lambda v: v > 0),
-        "delta_ri": number("delta_ri", 0.01, "in (-0.5, 0.5)", lambda v: abs(v) < 0.5),
-        "ri_polymer": number("ri_polymer", 1.49, f"in [{INDEX_RANGE[0]:g}, {INDEX_RANGE[1]:g}]",
-                             lambda v: INDEX_RANGE[0] <= v <= INDEX_RANGE[1]),
-    }
-    beam_um = number("beam_um", 150.0, "> 0 µm", lambda v: v > 0)
-    voxel_um = number("voxel_um", 0.5, "> 0 µm", lambda v: v > 0)
+    if rays is not None and (isinstance(rays, bool) or not isinstance(rays, int) or rays < 1):
+        raise ParameterError(f"`rays` must be a positive integer, got rays={rays!r}")
+    n_rays = data.get("rays", 1000)
+    if isinstance(n_rays, bool) or not isinstance(n_rays, int) or n_rays < 1:
+        fail(("rays",), f"`rays` must be a positive integer, got {n_rays!r}")
+    return seed, n_real, n_rays
 
-    ref_base = wood = overrides = None
+
+def _wood_base(data, fail, where) -> tuple:
+    """(reference fields, None, None) for a reference scene, or (None, the preset's fields with the
+    file's ``wood`` overrides, those overrides)."""
     if "reference" in data:
-        ref_base = _reference_fields(data, fail)
-    else:
-        preset = data.get("preset", "birch")
-        if not isinstance(preset, str):
-            fail(("preset",), f"`preset` must be a preset name, got {preset!r}")
-        try:
-            wood = load_preset(preset)
-        except ParameterError as exc:
-            raise ParameterError(where("preset") + str(exc)) from None
-        overrides = data.get("wood") or {}
-        if not isinstance(overrides, dict):
-            fail(("wood",), f"`wood` must be a mapping of microstructure parameters, got {overrides!r}")
-        for k, v in overrides.items():
-            if k not in WOOD_FIELDS:
-                fail(("wood", k), f"unknown microstructure parameter `wood.{k}` "
-                                  f"(known: {', '.join(sorted(WOOD_FIELDS))})")
-            wood[k] = coerce_field(k, v, "")
+        return _reference_fields(data, fail), None, None
+    preset = data.get("preset", "birch")
+    if not isinstance(preset, str):
+        fail(("preset",), f"`preset` must be a preset name, got {preset!r}")
+    try:
+        wood = load_preset(preset)
+    except ParameterError as exc:
+        raise ParameterError(where("preset") + str(exc)) from None
+    overrides = data.get("wood") or {}
+    if not isinstance(overrides, dict):
+        fail(("wood",), f"`wood` must be a mapping of microstructure parameters, got {overrides!r}")
+    for k, v in overrides.items():
+        if k not in WOOD_FIELDS:
+            fail(("wood", k), f"unknown microstructure parameter `wood.{k}` "
+                              f"(known: {', '.join(sorted(WOOD_FIELDS))})")
+        wood[k] = coerce_field(k, v, "")
+    return None, wood, overrides
 
+
+def _trace_settings(data, method, fail, where) -> TraceSettings:
+    """The file's ``trace`` block (its method replaced by ``method`` when given) as settings."""
     trace = data.get("trace") or {}
     if not isinstance(trace, dict):
         fail(("trace",), f"`trace` must be a mapping, got {trace!r}")
@@ -285,84 +321,65 @@ def load_study(path, *, scale: str = "paper", realisations: int | None = None, m
             fail(("trace", "step_vox"), f"`trace.step_vox` must be a number of voxels, got {step!r}")
         changes["step_vox"] = float(step)
     try:
-        settings = settings_for(method, exit=trace.get("exit", "internal"),
-                                fresnel=bool(trace.get("fresnel", False)), **changes)
+        return settings_for(method, exit=trace.get("exit", "internal"),
+                            fresnel=bool(trace.get("fresnel", False)), **changes)
     except ParameterError as exc:
         field = re.match(r"`(\w+)`", str(exc))
         key = ("trace", field.group(1)) if field and field.group(1) in trace else ("trace",)
         raise ParameterError(where(*key) + "`trace." + str(exc).lstrip("`")) from None
 
-    axes = [_axis(parameter, values, keys, ref_base, fail) for parameter, values, keys in _vary(data["vary"], fail)]
-    f = SCALES[scale]
-    n_rays = max(1, int(round(rays * f["rays"])))
-    if rays_override is not None:
-        n_rays = rays_override
-    fwhm_spec = _fwhm(data.get("fwhm"), fail)
-    target = (_target(data.get("target_ci"), n_rays, f["rays"], n_real, f["realisations"], fail)
-              if "target_ci" in data else None)
-    scenes = []
-    for combo in itertools.product(*(a.values for a in axes)):
-        scene_vars = dict(base)
-        w = dict(wood or {})
-        ref_fields = dict(ref_base or {})
-        for ax, v in zip(axes, combo):
-            if ax.parameter in _SCENE_VARIABLES:
-                scene_vars[ax.parameter] = v
-            elif ref_base is not None:
-                ref_fields[ax.parameter] = v
-            else:
-                w[ax.parameter] = v
-        v = combo[0] if len(axes) == 1 else combo
-        vary_keys = axes[0].keys if len(axes) == 1 else ("vary",)
-        thickness_um = scene_vars["thickness_mm"] * 1000.0 * f["thickness"]
-        params = ref = None
-        if ref_base is not None:
-            try:
-                ref = reference(**ref_fields)
-            except ParameterError as exc:
-                keys = vary_keys if any(a.parameter in REFERENCE_FIELDS for a in axes) else ("reference",)
-                raise ParameterError(where(*keys) + f"value {v!r}: `reference.{str(exc).lstrip('`')}") from None
-            wall = ref.wall_um
-        else:
-            if w.get("laminate") and "ply_thickness_um" not in overrides:
-                # Equal plies through the thickness (docs/methods.md#laminates).
-                w["ply_thickness_um"] = thickness_um / len(w["laminate"])
-            try:
-                params = validate(WoodParams(**w))
-            except ParameterError as exc:
-                raise ParameterError(where("wood") + f"value {v!r}: {exc}") from None
-            try:
-                check_voxel(voxel_um, params)
-            except ParameterError as exc:
-                fail(("voxel_um",), str(exc))
-            wall = params.wall_thickness_um
-        n_poly = scene_vars["ri_polymer"]
-        try:
-            Optics.of_delta(n_poly, scene_vars["delta_ri"]).validate()
-        except ParameterError as exc:
-            fail(("vary",), str(exc))
-        try:
-            check_paper_step(settings, voxel_um, wall)
-        except ParameterError as exc:
-            fail(("trace", "step_vox"), "`trace." + str(exc).lstrip("`"))
-        if thickness_um < voxel_um:
-            fail(("thickness_mm",), f"`thickness_mm` must be at least one voxel at scale {scale}, "
-                                    f"got {thickness_um:g} µm")
-        scenes.append(Scene(value=v, wood=params, seed=int(seed), voxel_um=voxel_um,
-                            thickness_um=thickness_um, ri_polymer=n_poly,
-                            delta_ri=scene_vars["delta_ri"], rays=n_rays,
-                            beam_um=beam_um * f["beam"], settings=settings, target=target, reference=ref,
-                            fwhm=fwhm_spec))
 
-    first = axes[0]
-    dimension = first.dimension if len(axes) == 1 else " × ".join(a.dimension for a in axes)
-    title = data.get("title", path.stem)
-    if not isinstance(title, str):
-        fail(("title",), f"`title` must be a string, got {title!r}")
-    return Study(name=path.stem, path=path, text=text, scale=scale, title=title,
-                 parameter=" × ".join(a.parameter for a in axes), dimension=dimension, units=first.units,
-                 long_name=first.long_name, scenes=tuple(scenes), realisations=n_real, axes=tuple(axes),
-                 unused=("voxel_um",) if "voxel_um" in data and settings.medium_kind == "surfaces" else ())
+def _scene(combo, *, base, wood, ref_base, overrides, axes, scale, voxel_um, settings, where, fail, scene) -> Scene:
+    """The scene of one combination of the varied values, every value checked."""
+    f = SCALES[scale]
+    scene_vars = dict(base)
+    w = dict(wood or {})
+    ref_fields = dict(ref_base or {})
+    for ax, v in zip(axes, combo):
+        if ax.parameter in _SCENE_VARIABLES:
+            scene_vars[ax.parameter] = v
+        elif ref_base is not None:
+            ref_fields[ax.parameter] = v
+        else:
+            w[ax.parameter] = v
+    v = combo[0] if len(axes) == 1 else combo
+    vary_keys = axes[0].keys if len(axes) == 1 else ("vary",)
+    thickness_um = scene_vars["thickness_mm"] * 1000.0 * f["thickness"]
+    params = ref = None
+    if ref_base is not None:
+        try:
+            ref = reference(**ref_fields)
+        except ParameterError as exc:
+            keys = vary_keys if any(a.parameter in REFERENCE_FIELDS for a in axes) else ("reference",)
+            raise ParameterError(where(*keys) + f"value {v!r}: `reference.{str(exc).lstrip('`')}") from None
+        wall = ref.wall_um
+    else:
+        if w.get("laminate") and "ply_thickness_um" not in overrides:
+            # Equal plies through the thickness (docs/methods.md#laminates).
+            w["ply_thickness_um"] = thickness_um / len(w["laminate"])
+        try:
+            params = validate(WoodParams(**w))
+        except ParameterError as exc:
+            raise ParameterError(where("wood") + f"value {v!r}: {exc}") from None
+        try:
+            check_voxel(voxel_um, params)
+        except ParameterError as exc:
+            fail(("voxel_um",), str(exc))
+        wall = params.wall_thickness_um
+    n_poly = scene_vars["ri_polymer"]
+    try:
+        Optics.of_delta(n_poly, scene_vars["delta_ri"]).validate()
+    except ParameterError as exc:
+        fail(("vary",), str(exc))
+    try:
+        check_paper_step(settings, voxel_um, wall)
+    except ParameterError as exc:
+        fail(("trace", "step_vox"), "`trace." + str(exc).lstrip("`"))
+    if thickness_um < voxel_um:
+        fail(("thickness_mm",), f"`thickness_mm` must be at least one voxel at scale {scale}, "
+                                f"got {thickness_um:g} µm")
+    return Scene(value=v, wood=params, thickness_um=thickness_um, ri_polymer=n_poly,
+                 delta_ri=scene_vars["delta_ri"], reference=ref, **scene)
 
 
 def _vary(vary, fail) -> list[tuple[str, Any, tuple]]:
