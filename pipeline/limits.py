@@ -226,7 +226,7 @@ def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: 
 def shard_estimate(scene, rays: int) -> Estimate:
     """One shard of ``rays`` rays of a study's ``scene`` traced, its rays stored."""
     return trace_estimate(rays=rays, beam_um=scene.beam_um, thickness_um=scene.thickness_um,
-                          voxel_um=scene.trace_voxel_um, pitch_um=scene.pitch_um, method=scene.settings.method,
+                          voxel_um=scene.traced_voxel_um, pitch_um=scene.pitch_um, method=scene.settings.method,
                           wood=False, store=True, generated=scene.wood is not None, params=scene.wood)
 
 
@@ -239,7 +239,7 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
     for s in scenes:
         if s.target is not None and s.target.over == "rays":  # traced to a precision: at most its cap of rays
             s = dataclasses.replace(s, rays=s.target.max_rays)
-        voxel = s.trace_voxel_um
+        voxel = s.traced_voxel_um
         if s.settings.medium_kind == "voxels" and s.wood is not None:  # surfaces and lattices store no wood
             key = (repr(s.wood), s.seed, voxel)
             woods[key] = (max(woods.get(key, (0.0,))[0], wood_voxels(s.beam_um, s.thickness_um, voxel)), voxel, s.wood)

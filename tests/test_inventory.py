@@ -197,9 +197,9 @@ def test_the_keys_in_use_are_the_studys_wood_and_its_stages_not_another_seeds(tm
     study.write_text(STUDY)
     keys = keys_in_use([study], ["small"], tmp_path / "cache")
     scenes = load_study(study, scale="small").all_scenes()
-    woods = {cache_key(wood_record(s.wood, s.seed, s.trace_voxel_um)) for s in scenes}
+    woods = {cache_key(wood_record(s.wood, s.seed, s.traced_voxel_um)) for s in scenes}
     assert len(woods) == 1 and woods <= keys  # both ΔRI values trace the one wood
-    other = {cache_key(wood_record(s.wood, s.seed + 1, s.trace_voxel_um)) for s in scenes}
+    other = {cache_key(wood_record(s.wood, s.seed + 1, s.traced_voxel_um)) for s in scenes}
     assert not other & keys
     # Besides the wood, per value (400 rays: one shard) its rays, a summary and a pool.
     assert len(keys) == 1 + 2 * 3 and all(len(k) == 24 for k in keys)

@@ -137,7 +137,7 @@ def test_the_convergence_benchmark_varies_accurates_rays_and_voxel_alone():
         base, more, coarse = (conv.variant(st, v) for v in conv.VARIANTS)
         assert st.realisations == 1 and all(s.settings.method == "accurate" for s in st.scenes), name
         for b, m, c in zip(base.scenes, more.scenes, coarse.scenes):
-            assert (b.trace_voxel_um, c.trace_voxel_um) == (0.25, 0.5) and m.rays == 4 * b.rays
+            assert (b.traced_voxel_um, c.traced_voxel_um) == (0.25, 0.5) and m.rays == 4 * b.rays
             assert dataclasses.replace(c, settings=b.settings) == b and dataclasses.replace(m, rays=b.rays) == b
 
 
@@ -396,13 +396,13 @@ def test_accurate_models_the_wood_on_voxels_half_the_studys_and_refine_is_a_sett
     microstructure; a study may set trace.refine for any method."""
     path = tiny(tmp_path, [0.01])
     fast = load_study(path).scenes[0]
-    assert fast.settings.refine == 1 and fast.trace_voxel_um == fast.voxel_um == 0.5
+    assert fast.settings.refine == 1 and fast.traced_voxel_um == fast.voxel_um == 0.5
     path.write_text(path.read_text().replace("trace: {method: fast}", "trace: {method: accurate}"))
     acc = load_study(path).scenes[0]
-    assert acc.settings.refine == 2 and acc.trace_voxel_um == 0.25 and acc.voxel_um == 0.5
+    assert acc.settings.refine == 2 and acc.traced_voxel_um == 0.25 and acc.voxel_um == 0.5
     path.write_text(path.read_text().replace("trace: {method: accurate}", "trace: {method: fast, refine: 3}"))
     three = load_study(path).scenes[0]
-    assert three.settings.method == "fast" and three.trace_voxel_um == pytest.approx(0.5 / 3)
+    assert three.settings.method == "fast" and three.traced_voxel_um == pytest.approx(0.5 / 3)
     plans = {s.settings.refine: plan_study(load_study(p), tmp_path / "c") for s, p in
              ((fast, tiny(tmp_path, [0.01], "a.yaml")), (three, path))}
     m1, m3 = (next(iter(plans[k].micros.values())) for k in (1, 3))

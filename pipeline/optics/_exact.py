@@ -261,8 +261,8 @@ def _next_cell_crossing(geo, seed, px, py, dx, dy, medium, t_end, tab):
 
 
 @njit(cache=True, nogil=True)
-def trace(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg_len, noise,
-          out_dir, out_pos, status, events, path_out, medium_out, normals_out):
+def trace_lattice(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_events, seg_len, noise,
+                  out_dir, out_pos, status, events, path_out, medium_out, normals_out):
     """Trace rays (pos (N, 3) [µm] on T = 0, unit dirs (N, 3) with dirs[:, 1] > 0) through the
     lattice between T = 0 and T = thickness, exactly.
 

@@ -24,7 +24,7 @@ from numba import njit
 
 from .._intrinsics import borrowed, carve
 from ..microstructure.surface import MAX_PRIMS, N_COLS
-from ._march_rows import copy_rows, far_unproven, find_row, nearest, regime, same_key, switched
+from ._surface_march_rows import copy_rows, far_unproven, find_row, nearest, regime, same_key, switched
 from ._surface_points import surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
 

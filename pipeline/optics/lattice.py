@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _exact as _X
+from . import _exact
 from ._lattice_rows import lattice_context
 from ._surface_march import HIT, TOL, march, new_work
 from .interface import REFLECTED, TRANSMITTED
@@ -50,7 +50,7 @@ class Lattice:
 
     @property
     def kind(self) -> int:
-        return _X.TUBES if self.family == "tubes" else _X.CELLS
+        return _exact.TUBES if self.family == "tubes" else _exact.CELLS
 
     @property
     def geo(self) -> np.ndarray:
@@ -71,7 +71,7 @@ class Lattice:
         r_um = np.ascontiguousarray(r_um, np.float64)
         t_um = np.ascontiguousarray(t_um, np.float64)
         out = np.empty((r_um.size, t_um.size), np.uint8)
-        _X.phase_grid(self.geo, self.kind, np.uint64(self.seed), r_um, t_um, out)
+        _exact.phase_grid(self.geo, self.kind, np.uint64(self.seed), r_um, t_um, out)
         return out
 
     def voxelise(self, *, voxel_um: float, r0_um: float, n_r: int, n_t: int, length: int = 32) -> np.ndarray:
@@ -143,7 +143,7 @@ class Lattice:
         status, events = np.empty(n, np.int64), np.empty(n, np.int64)
         path = np.empty(n)
         medium, normals = np.empty(n, np.uint8), np.empty((n, 2))
-        _X.trace(self.geo, self.kind, np.uint64(self.seed), pos, dirs, float(n_wall), float(n_poly),
+        _exact.trace_lattice(self.geo, self.kind, np.uint64(self.seed), pos, dirs, float(n_wall), float(n_poly),
                  float(thickness_um), int(max_events), float(self.pitch_um), math.radians(normal_noise_deg),
                  out_dir, out_pos, status, events, path, medium, normals)
         return {"position": out_pos, "direction": out_dir, "status": status, "events": events, "path": path,

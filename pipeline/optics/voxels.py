@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from ..params import ParameterError
-from . import _march as K
+from . import _voxel_march as voxel_march
 from ._normals import NEWTON_REACH, window_scratch
 from ._packing import OUTSIDE, mark_boxes, phases_at
 from .faces import NO_PHASE, through_faces
@@ -146,12 +146,12 @@ class VoxelInterior:
         normals = np.zeros((n, 4))
         shape = np.asarray(source.shape, np.int64)
         cs = cache.chunk_shape
-        method = K.PAPER if settings.method == "paper" else K.EXACT
-        reach = (int(math.ceil(vs.radius_vox + NEWTON_REACH)) + 2 if method == K.EXACT
+        method = voxel_march.FIXED_STEPS if settings.method == "paper" else voxel_march.TRAVERSAL
+        reach = (int(math.ceil(vs.radius_vox + NEWTON_REACH)) + 2 if method == voxel_march.TRAVERSAL
                  else vs.svm_box)
         scratch = window_scratch(vs.radius_vox)
         while n:
-            K.trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
+            voxel_march.march_voxels(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
                     ray_ids, cache.bits, cache.masks, cache.table, cache.box, cs, shape, method,
                     vs.step_vox, vs.sigma_vox, vs.radius_vox, vs.newton,
                     vs.refit, optics.n_wall, optics.n_poly, settings.fresnel, np.uint64(optics.seed),
@@ -163,7 +163,7 @@ class VoxelInterior:
             if waiting.size:
                 # Keep every chunk that a live ray's normal window may read, or rays
                 # near chunk borders would evict each other's chunks forever.
-                live = (vox if method == K.EXACT else np.floor(pos).astype(np.int64))[status >= NEEDS_CHUNK]
+                live = (vox if method == voxel_march.TRAVERSAL else np.floor(pos).astype(np.int64))[status >= NEEDS_CHUNK]
                 # The chunks each live ray's window [x - reach, x + reach] spans.
                 keep = map(tuple, _chunks_of_boxes((live - reach) // cs, (live + reach) // cs).tolist())
                 cache.require(_unique_rows(request[waiting]).tolist(), keep=set(keep))

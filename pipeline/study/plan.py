@@ -51,7 +51,7 @@ class Micro:
     def store(self) -> WoodChunkStore:
         """The chunk store of this wood (opened, or created empty)."""
         s = self.scene
-        return WoodChunkStore(self.path, s.wood, seed=s.seed, voxel_um=s.trace_voxel_um, chunks=CHUNKS)
+        return WoodChunkStore(self.path, s.wood, seed=s.seed, voxel_um=s.traced_voxel_um, chunks=CHUNKS)
 
     def slim(self) -> "Micro":
         """This wood without its chunk lists (what a task needs to open the store)."""
@@ -129,12 +129,12 @@ class Plan:
 
 
 def micro_record(scene: Scene) -> dict:
-    return wood_record(scene.wood, scene.seed, scene.trace_voxel_um)
+    return wood_record(scene.wood, scene.seed, scene.traced_voxel_um)
 
 
 def beam_geometry(scene: Scene) -> tuple[int, float]:
     """(thickness, beam width) in the voxels traced."""
-    return int(round(scene.thickness_um / scene.trace_voxel_um)), scene.beam_um / scene.trace_voxel_um
+    return int(round(scene.thickness_um / scene.traced_voxel_um)), scene.beam_um / scene.traced_voxel_um
 
 
 def rays_record(scene: Scene, micro: str | None) -> dict:
@@ -148,7 +148,7 @@ def rays_record(scene: Scene, micro: str | None) -> dict:
     rec = {"stage": "rays", "version": versions.STAGES["rays"], "tracer": versions.tracer(scene.settings.method),
            "n_wall": scene.n_wall, "n_poly": scene.ri_polymer, "settings": scene.settings.to_dict()}
     if scene.reference is not None:
-        voxel = scene.trace_voxel_um if scene.settings.medium_kind == "voxels" else None
+        voxel = scene.traced_voxel_um if scene.settings.medium_kind == "voxels" else None
         return {**rec, "reference": scene.reference.to_dict(), "lattice_seed": scene.seed, "traced_voxel_um": voxel,
                 "thickness_um": scene.thickness_um,
                 "beam": {"width_um": scene.beam_um, "centre_um": [0.0, 0.0], "seed": scene.seed}}

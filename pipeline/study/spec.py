@@ -111,7 +111,7 @@ class Scene:
         return Optics.of_delta(self.ri_polymer, self.delta_ri, seed=self.seed)
 
     @property
-    def trace_voxel_um(self) -> float:
+    def traced_voxel_um(self) -> float:
         """The voxel the wood is generated and traced on [µm] (``settings.refine`` times smaller)."""
         return traced_voxel_um(self.voxel_um, self.settings)
 

@@ -17,22 +17,22 @@ from ._packing import MISSING, OUTSIDE, chunk_of, chunk_slot, voxel_at
 from .interface import (ACTIVE, NEEDS_CHUNK, NEEDS_NORMAL, REFLECTED, SIDE, TRANSMITTED, TRAPPED,
                         interface_event)
 
-# Methods.
-PAPER = 0  # fixed steps, crossing at the midpoint, SVM normal (computed in Python)
-EXACT = 1  # voxel traversal, crossing on the voxel face, Gaussian-gradient normal
+# How a voxel method marches (not the method `exact`, which traces surfaces, not voxels).
+FIXED_STEPS = 0  # the paper's: fixed steps, crossing at the midpoint, SVM normal (computed in Python)
+TRAVERSAL = 1  # fast/accurate: voxel traversal, crossing on the voxel face, Gaussian-gradient normal
 
 
 
 @njit(cache=True, nogil=True)
-def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
-          ray_ids, bits, masks, table, box, cs, shape, method, step, sigma, radius, newton, refit,
-          n_wall, n_poly, fresnel, seed, max_events, wts, segs, slots):
+def march_voxels(pos, dirs, medium, vox, status, events, path, fallbacks, request, normals,
+                 ray_ids, bits, masks, table, box, cs, shape, method, step, sigma, radius, newton, refit,
+                 n_wall, n_poly, fresnel, seed, max_events, wts, segs, slots):
     """Advance every ACTIVE / paused ray as far as the resident chunks allow.
 
     Per ray: pos (3) float64, dirs (3) unit float64, medium 0/1, vox (3) int64
-    current voxel (EXACT mode), status, events (interfaces met), path length
-    [voxels], fallbacks (3): degenerate normals, (EXACT) events whose new
-    direction disagreed with the crossed voxel face, and (EXACT) normals taken
+    current voxel (TRAVERSAL), status, events (interfaces met), path length
+    [voxels], fallbacks (3): degenerate normals, (TRAVERSAL) events whose new
+    direction disagreed with the crossed voxel face, and (TRAVERSAL) normals taken
     at the face point for want of a 1/2-level surface (thin walls).  ``request`` receives the chunk a
     NEEDS_CHUNK ray waits for, or (paper mode) the crossing point of a
     NEEDS_NORMAL ray, whose normal arrives in ``normals``.
@@ -74,7 +74,7 @@ def trace(pos, dirs, medium, vox, status, events, path, fallbacks, request, norm
             for q in range(3):
                 d[q] = dirs[r, q]
                 x[q] = pos[r, q]
-            if method == EXACT:
+            if method == TRAVERSAL:
                 _march(r, pos, dirs, medium, vox, status, events, path, fallbacks, request, ray_ids,
                        bits, masks, table, box, cs, shape, sigma, radius, newton, refit, n_wall, n_poly,
                        fresnel, seed, max_events, wts, segs, slots, d, x, newd, nrm)
