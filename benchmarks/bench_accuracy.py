@@ -75,8 +75,8 @@ def _noise(args) -> dict:
     n_wall, n_poly = INDICES[dri]
     lat = lattice(family, 4.0)
     beam = square_beam(4000, 150.0 / VOXEL, seed=1)
-    a = lat.trace(beam.origins * VOXEL, beam.direction, n_wall=n_wall, n_poly=n_poly, thickness_um=250.0)
-    b = lat.trace(beam.origins * VOXEL, beam.direction, n_wall=n_wall, n_poly=n_poly, thickness_um=250.0,
+    a = lat.trace_independently(beam.origins * VOXEL, beam.direction, n_wall=n_wall, n_poly=n_poly, thickness_um=250.0)
+    b = lat.trace_independently(beam.origins * VOXEL, beam.direction, n_wall=n_wall, n_poly=n_poly, thickness_um=250.0,
                   normal_noise_deg=deg)
     return {"family": family, "delta_ri": dri, "normal_noise_deg": deg,
             "fwhm_r_error": fwhm(b.theta_r[b.transmitted], "lorentz-mle") / fwhm(a.theta_r[a.transmitted], "lorentz-mle") - 1.0,

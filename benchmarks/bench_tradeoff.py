@@ -170,7 +170,7 @@ def run_point(p: dict) -> dict:
         else:
             out["voxels_generated"] = 0.0
     else:
-        ex = lat.trace(beam.origins * v, beam.direction, n_wall=n_wall, n_poly=n_poly, thickness_um=thickness)
+        ex = lat.trace_independently(beam.origins * v, beam.direction, n_wall=n_wall, n_poly=n_poly, thickness_um=thickness)
         t = ex.transmitted
         h = haze(ex.direction[t])
         out["exact"] = {"fwhm_r": fwhm(ex.theta_r[t], "lorentz-mle"), "fwhm_l": fwhm(ex.theta_l[t], "lorentz-mle"), "haze": h,

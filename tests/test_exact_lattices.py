@@ -28,8 +28,8 @@ def _three(lat, thickness, n_wall, rays=300):
     beam = square_beam(rays, 150.0, seed=1, direction=(0.2, 1.0, 0.1))
     d = beam.unit_directions()
     march = trace(lat.slab(thickness), beam, Optics(n_wall, 1.49), settings_for("exact"))
-    ref = lat.trace(beam.origins, d, n_wall=n_wall, n_poly=1.49, thickness_um=thickness)
-    nudged = lat.trace(beam.origins + [NUDGE_UM, 0.0, 0.0], d, n_wall=n_wall, n_poly=1.49, thickness_um=thickness)
+    ref = lat.trace_independently(beam.origins, d, n_wall=n_wall, n_poly=1.49, thickness_um=thickness)
+    nudged = lat.trace_independently(beam.origins + [NUDGE_UM, 0.0, 0.0], d, n_wall=n_wall, n_poly=1.49, thickness_um=thickness)
     return beam, march, ref, nudged
 
 
@@ -100,6 +100,6 @@ def test_a_thousand_rays_through_a_thick_honeycomb_meet_every_wall_the_independe
     lat = reference("cells-hex", pitch_um=14.5, wall_um=2.0, jitter=0.1).lattice(1)
     beam = square_beam(1000, 150.0, seed=1, direction=(0.2, 1.0, 0.1))
     march = trace(lat.slab(300.0), beam, Optics(1.52, 1.49), settings_for("exact"))
-    ref = lat.trace(beam.origins, beam.unit_directions(), n_wall=1.52, n_poly=1.49, thickness_um=300.0)
+    ref = lat.trace_independently(beam.origins, beam.unit_directions(), n_wall=1.52, n_poly=1.49, thickness_um=300.0)
     assert np.array_equal(march.events, ref.events)
     assert _angle(march.direction, ref.direction).max() <= 1e-9

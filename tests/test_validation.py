@@ -28,7 +28,7 @@ def lattices():
 def test_one_rod_of_a_sparse_lattice_follows_the_rod_law_to_machine_precision(n_wall, n_poly):
     rod = tube_lattice(1000.0, 20.0, 20.0, origin_um=(0.0, 500.0))  # one rod ahead, the next far away
     b = np.linspace(-19.95, 19.95, 81)
-    res = rod.trace(np.column_stack([b, 0 * b, 0 * b]), (0, 1, 0), n_wall=n_wall, n_poly=n_poly,
+    res = rod.trace_independently(np.column_stack([b, 0 * b, 0 * b]), (0, 1, 0), n_wall=n_wall, n_poly=n_poly,
                     thickness_um=1000.0)
     with np.errstate(invalid="ignore"):
         law = rod_deflection_deg(b, 20.0, n_wall / n_poly)
@@ -41,7 +41,7 @@ def test_one_rod_of_a_sparse_lattice_follows_the_rod_law_to_machine_precision(n_
 def test_one_tube_follows_the_tube_law_and_reflects_totally_where_it_says():
     tube = tube_lattice(1000.0, 20.0, 3.0, origin_um=(0.0, 500.0))
     b = np.linspace(-19.95, 19.95, 161)
-    res = tube.trace(np.column_stack([b, 0 * b, 0 * b]), (0, 1, 0), n_wall=1.50, n_poly=1.49,
+    res = tube.trace_independently(np.column_stack([b, 0 * b, 0 * b]), (0, 1, 0), n_wall=1.50, n_poly=1.49,
                      thickness_um=1000.0)
     law = tube_deflection_deg(b, 20.0, 3.0, 1.50 / 1.49)
     ok = np.isfinite(law)
@@ -56,7 +56,7 @@ def test_one_tube_follows_the_tube_law_and_reflects_totally_where_it_says():
 def test_index_matched_lattices_let_every_ray_through_undeflected(name):
     lat = lattices()[name]
     beam = square_beam(300, 150.0, seed=2)
-    res = lat.trace(beam.origins * 0.5, (0, 1, 0), n_wall=1.5, n_poly=1.5, thickness_um=100.0)
+    res = lat.trace_independently(beam.origins * 0.5, (0, 1, 0), n_wall=1.5, n_poly=1.5, thickness_um=100.0)
     assert np.all(res.transmitted) and res.events.sum() > 300
     assert np.all(res.direction == [0.0, 1.0, 0.0])
 
@@ -67,7 +67,7 @@ def test_index_matched_lattices_let_every_ray_through_undeflected(name):
 def test_a_lattice_symmetric_about_r_0_deflects_mirror_rays_oppositely(lat):
     b = np.linspace(0.113, 40.113, 57)
     o = np.column_stack([np.concatenate([b, -b]), np.zeros(114), np.zeros(114)])
-    res = lat.trace(o, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=60.0)
+    res = lat.trace_independently(o, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=60.0)
     np.testing.assert_allclose(res.theta_r[:57], -res.theta_r[57:], atol=1e-9)
     assert np.array_equal(res.events[:57], res.events[57:])
     assert np.abs(res.theta_r).max() > 1.0
@@ -82,10 +82,10 @@ def test_an_exit_ray_traced_back_arrives_where_its_entry_ray_came_from(name, n_w
     o = np.column_stack([rng.uniform(-70, 70, n), np.zeros(n), rng.uniform(-5, 5, n)])
     d = np.column_stack([rng.normal(0, 0.1, n), np.ones(n), rng.normal(0, 0.1, n)])
     d /= np.linalg.norm(d, axis=1)[:, None]
-    fwd = lat.trace(o, d, n_wall=n_wall, n_poly=n_poly, thickness_um=150.0)
+    fwd = lat.trace_independently(o, d, n_wall=n_wall, n_poly=n_poly, thickness_um=150.0)
     t = fwd.transmitted
     assert t.mean() > 0.95 and fwd.events[t].mean() > 10
-    back = lat.trace(fwd.position[t], -fwd.direction[t], n_wall=n_wall, n_poly=n_poly, thickness_um=150.0,
+    back = lat.trace_independently(fwd.position[t], -fwd.direction[t], n_wall=n_wall, n_poly=n_poly, thickness_um=150.0,
                      backwards=True)
     assert np.all(back.transmitted)
     assert np.array_equal(back.events, fwd.events[t])
@@ -104,7 +104,7 @@ def test_directions_stay_unit_and_the_optical_momentum_along_l_is_conserved(name
     o = np.column_stack([rng.uniform(-70, 70, n), np.zeros(n), np.zeros(n)])
     d = np.column_stack([rng.normal(0, 0.2, n), np.ones(n), rng.uniform(0.1, 0.6, n)])
     d /= np.linalg.norm(d, axis=1)[:, None]
-    res = lat.trace(o, d, n_wall=n_wall, n_poly=n_poly, thickness_um=80.0)
+    res = lat.trace_independently(o, d, n_wall=n_wall, n_poly=n_poly, thickness_um=80.0)
     np.testing.assert_allclose(np.linalg.norm(res.direction, axis=1), 1.0, atol=1e-12)
     start = lat.phase(o[:, 0], [0.0])[:, 0]
     n_start = np.where(start == 1, n_wall, n_poly)
@@ -117,7 +117,7 @@ def test_directions_stay_unit_and_the_optical_momentum_along_l_is_conserved(name
 def test_the_phase_a_ray_ends_in_is_the_lattices_phase_there(name):
     lat = lattices()[name]
     beam = square_beam(400, 150.0, seed=8)
-    res = lat.trace(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=47.3)
+    res = lat.trace_independently(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=47.3)
     back = res.position - 1e-6 * res.direction
     phase = np.array([lat.phase([p[0]], [p[1]])[0, 0] for p in back])
     assert np.array_equal(phase, res.extras["medium"])
@@ -147,7 +147,7 @@ def test_lattice_geometry_is_checked_and_named():
     with pytest.raises(ValueError, match="r_outer_um"):
         tube_lattice(10.0, 11.0, 1.0)
     with pytest.raises(ValueError, match="direction"):
-        honeycomb(10.0, 1.0).trace(np.zeros((1, 3)), (0, -1, 0), n_wall=1.5, n_poly=1.49, thickness_um=10)
+        honeycomb(10.0, 1.0).trace_independently(np.zeros((1, 3)), (0, -1, 0), n_wall=1.5, n_poly=1.49, thickness_um=10)
 
 
 def test_unbiased_normal_noise_of_a_tenth_of_a_degree_barely_moves_the_results():
@@ -155,10 +155,10 @@ def test_unbiased_normal_noise_of_a_tenth_of_a_degree_barely_moves_the_results()
     0.1° at random (far better than voxels give) move FWHM_R a few % and haze < 2 points."""
     lat = honeycomb(14.5, 2.0, jitter=0.15, seed=3)
     beam = square_beam(3000, 300.0, seed=1)
-    a = lat.trace(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=250.0)
-    b = lat.trace(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=250.0,
+    a = lat.trace_independently(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=250.0)
+    b = lat.trace_independently(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=250.0,
                   normal_noise_deg=0.1)
-    again = lat.trace(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=250.0,
+    again = lat.trace_independently(beam.origins * 0.5, (0, 1, 0), n_wall=1.50, n_poly=1.49, thickness_um=250.0,
                       normal_noise_deg=0.1)
     assert np.array_equal(b.direction, again.direction)
     assert not np.array_equal(a.direction, b.direction)

@@ -93,7 +93,7 @@ class Lattice:
         traced by the march that traces generated wood)."""
         return LatticeSlab(self, thickness_um)
 
-    def trace(self, origins_um, direction, *, n_wall: float, n_poly: float, thickness_um: float,
+    def trace_independently(self, origins_um, direction, *, n_wall: float, n_poly: float, thickness_um: float,
               max_events: int = 100_000, backwards: bool = False, normal_noise_deg: float = 0.0) -> RayResult:
         """Trace rays exactly through the lattice from T = 0 to T = ``thickness_um``.
 
@@ -156,7 +156,7 @@ class LatticeSlab:
     ``exact``), traced by the march that traces generated wood
     (:mod:`pipeline.optics._surface_march`): each wall a circle or a line of the R-T section,
     extruded along L, listed as rows with their distances (:mod:`pipeline.optics._lattice_rows`).
-    :meth:`Lattice.trace` is the independent reference it is tested against."""
+    :meth:`Lattice.trace_independently` is the independent reference it is tested against."""
 
     lattice: Lattice
     thickness_um: float

@@ -129,7 +129,7 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
     beam = square_beam(n_rays, beam_um, seed=seed)
     optics = Optics(n_wall, n_poly)
     # The independent exact tracer (ray-circle and ray-line roots), which ``exact`` matches ray by ray.
-    ex = lattice.trace(beam.origins, beam.unit_directions(), n_wall=n_wall, n_poly=n_poly, thickness_um=thickness_um)
+    ex = lattice.trace_independently(beam.origins, beam.unit_directions(), n_wall=n_wall, n_poly=n_poly, thickness_um=thickness_um)
     t0 = time.perf_counter()
     vx = trace(lattice.source(thickness_um=thickness_um, voxel_um=voxel_um, chunks=chunks), beam, optics, settings)
     elapsed = time.perf_counter() - t0
