@@ -47,7 +47,7 @@ fibre-tips: install
 	$(BIN)/twray study $(addprefix studies/fibre-tips/,$(addsuffix .yaml,$(FIBRE_TIPS))) $(STUDY_ARGS) --results $(RESULTS)/fibre-tips --report $(RESULTS)/fibre-tips/fibre-tips.md
 
 ## Design maps: haze and FWHM_R of birch and balsa over thickness x ΔRI, inside and in air -> results/<scale>/design/
-## (~9 CPU-min at paper scale with `exact`, 4.6 min on 2 cores), then their figures; `twray design` reads them.
+## (~106 CPU-min at paper scale with `exact`, about an hour on 2 cores), then their figures; `twray design` reads them.
 design: install
 	$(BIN)/twray study $(addprefix studies/design/,$(addsuffix .yaml,$(DESIGN))) $(STUDY_ARGS) --results $(RESULTS)/design --report $(RESULTS)/design/design.md
 	$(BIN)/twray figures --only design --results $(RESULTS) --out $(if $(filter paper,$(SCALE)),results/figures,$(RESULTS)/figures)
