@@ -15,7 +15,7 @@ FLOORS = [
      "pipeline.provenance", "pipeline.publish", "pipeline.runlog"},
     {"pipeline.microstructure"},
     {"pipeline.optics"},
-    {"pipeline.limits", "pipeline.study", "pipeline.camera", "pipeline.wave"},
+    {"pipeline.limits", "pipeline.request", "pipeline.study", "pipeline.camera", "pipeline.wave"},
     {"pipeline.result_sets", "pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.report_tables", "pipeline.report_source",
      "pipeline.report_geometry", "pipeline.report_wave", "pipeline.inventory",
      "pipeline.trace_job",

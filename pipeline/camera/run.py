@@ -10,10 +10,11 @@ planned (:mod:`.plan`), their row blocks are graph tasks (:mod:`.tasks`,
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from .. import limits
+from ..request import GraphRequest
 from .dataset import write_outputs
 from .graph import compute
 from .plan import ROWS_PER_TASK, plan_blocks, plan_camera
@@ -23,20 +24,12 @@ from .tasks import load_entry
 FIT = "use fewer pixels or samples, a smaller or thinner sheet, or larger voxels"  # when a camera run is too big
 
 
-@dataclass(frozen=True)
-class CameraRequest:
+@dataclass(frozen=True, kw_only=True)
+class CameraRequest(GraphRequest):
     """What ``twray camera`` asks for (:func:`render`)."""
 
     file: str
-    cache: str  # absolute, resolved on the client (the workers may run elsewhere)
-    results: str
-    scale: str = "paper"
-    method: str | None = None
     rows_per_task: int = ROWS_PER_TASK
-    dry_run: bool = False
-    yes: bool = False
-    progress: str = "off"
-    started: limits.Estimate = field(default_factory=limits.Estimate)  # the command and the workers it starts
 
 
 @dataclass

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from .. import limits
 from ..params import ParameterError
+from ..request import GraphRequest
 from .graph import compute
 from .plan import Plan, describe_plan, plan_study, report_table, summary_rows, target_met, widen
 from .spec import at_target_cap, load_study
@@ -23,23 +24,15 @@ from .spec import at_target_cap, load_study
 FIT = "use fewer rays, a narrower beam, larger voxels or a thinner sample"  # what to change when a study is too big
 
 
-@dataclass(frozen=True)
-class StudyRequest:
+@dataclass(frozen=True, kw_only=True)
+class StudyRequest(GraphRequest):
     """What ``twray study`` asks for (:func:`run`)."""
 
     files: tuple
-    cache: str  # absolute, resolved on the client (the workers may run elsewhere)
-    results: str
-    scale: str = "paper"
     shard_rays: int = 250
     realisations: int | None = None
-    method: str | None = None
     rays: int | None = None
-    dry_run: bool = False
-    yes: bool = False
     report: Path | None = None  # also a Markdown table of every study
-    progress: str = "off"
-    started: limits.Estimate = field(default_factory=limits.Estimate)  # the command and the workers it starts
 
 
 @dataclass
