@@ -37,7 +37,7 @@ from pipeline.microstructure.store import WoodChunkStore
 from pipeline.optics.sources import WoodSource
 from pipeline.optics.rays import Beam, square_beam
 from pipeline.optics.settings import settings_for
-from pipeline.optics.voxels import trace_beam
+from pipeline.optics.voxels import trace_in_voxels
 from pipeline.params import build_params
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -69,7 +69,7 @@ def thickness() -> dict:
         source = WoodSource(params, thickness_um=1000.0 * mm, voxel_um=0.25, seed=7)
         beam = square_beam(200, 150 / 0.25, seed=7)
         t0 = time.perf_counter()
-        r = trace_beam(source, beam, n_wall=1.50, n_poly=1.49, settings=settings_for("accurate", refine=1), seed=7)
+        r = trace_in_voxels(source, beam, n_wall=1.50, n_poly=1.49, settings=settings_for("accurate", refine=1), seed=7)
         out[f"{mm:g}_mm"] = {"seconds": round(time.perf_counter() - t0, 2), "chunks_generated": len(source.distinct),
                              "interfaces_per_ray": round(float(r.events.mean()), 1)}
     return out
@@ -124,7 +124,7 @@ def paper_scene(tmp: Path, n_rays: int) -> dict:
     beam = square_beam(1000, 300, (0.0, 0.0), seed=1)
     part = Beam(beam.origins[:n_rays], beam.direction, beam.ray_ids[:n_rays])
     t0 = time.perf_counter()
-    r = trace_beam(source, part, n_wall=1.52, n_poly=1.49, settings=settings_for("accurate"), seed=1)
+    r = trace_in_voxels(source, part, n_wall=1.52, n_poly=1.49, settings=settings_for("accurate"), seed=1)
     total = time.perf_counter() - t0
     return {"rays": n_rays, "seconds": round(total, 1), "wood_seconds": round(spent[0], 1),
             "chunks_generated": store.generated, "chunks_per_ray": round(store.generated / n_rays, 1),

@@ -38,7 +38,7 @@ from pipeline.optics import _normals
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.rays import Beam, square_beam
 from pipeline.optics.settings import settings_for
-from pipeline.optics.voxels import svm_normal, trace_beam
+from pipeline.optics.voxels import svm_normal, trace_in_voxels
 from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod,
                                        voxelised_sheet, voxelised_tube)
 from pipeline.params import build_params, make_grid
@@ -50,7 +50,7 @@ def _across(vol, c0: float, b: np.ndarray, method: str):
     """Rays along +T at impact parameters ``b`` from R = c0 through a cylinder volume (axis along L)."""
     nn = vol.shape[0]
     origins = np.column_stack([c0 + b, np.zeros_like(b), np.full_like(b, 16.0)])
-    return trace_beam(ArraySource(vol, chunks=(nn, nn, 32)),
+    return trace_in_voxels(ArraySource(vol, chunks=(nn, nn, 32)),
                       Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(b.size)),
                       n_wall=1.50, n_poly=1.49, settings=settings_for(method))
 
@@ -113,7 +113,7 @@ def sheet_errors(method: str, thickness: float, phase: int = 1, tilts=(20.0, 45.
         for off in rng.uniform(0, 1, 4):
             vol = voxelised_sheet(tilt, off, thickness, phase=phase)
             origins = np.column_stack([rng.uniform(44, 84, n), np.zeros(n), np.full(n, 16.0)])
-            res = trace_beam(ArraySource(vol, chunks=(128, 128, 32)),
+            res = trace_in_voxels(ArraySource(vol, chunks=(128, 128, 32)),
                              Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(n)),
                              n_wall=1.50, n_poly=1.49, settings=settings_for(method))
             t = res.transmitted
@@ -125,7 +125,7 @@ def sheet_errors(method: str, thickness: float, phase: int = 1, tilts=(20.0, 45.
 
 
 class _LoadTimer:
-    """Times ChunkCache.require (reading and bit-packing chunks) inside trace_beam."""
+    """Times ChunkCache.require (reading and bit-packing chunks) inside trace_in_voxels."""
 
     def __init__(self):
         self.seconds = 0.0
@@ -157,14 +157,14 @@ def birch_speed(block, rays: dict, repeats: int = 5) -> dict:
     src = ArraySource(block, chunks=(128, 128, 128))
     best = {name: (math.inf, 0.0, None) for name in rays}
     for m, _, n_poly in rays.values():
-        trace_beam(src, square_beam(2, 10.0, (100, 100), seed=1), n_wall=1.50, n_poly=n_poly,
+        trace_in_voxels(src, square_beam(2, 10.0, (100, 100), seed=1), n_wall=1.50, n_poly=n_poly,
                    settings=settings_for(m))  # compile
     for _ in range(repeats):
         for name, (m, n, n_poly) in rays.items():
             beam = square_beam(n, 150.0 / 0.5, (block.shape[0] / 2, block.shape[2] / 2), seed=3)
             with _LoadTimer() as timer:
                 t0 = time.perf_counter()
-                res = trace_beam(src, beam, n_wall=1.50, n_poly=n_poly, settings=settings_for(m))
+                res = trace_in_voxels(src, beam, n_wall=1.50, n_poly=n_poly, settings=settings_for(m))
                 t = time.perf_counter() - t0
             if t < best[name][0]:
                 best[name] = (t, timer.seconds, res)
@@ -258,7 +258,7 @@ def lazy_trace(thickness_mm=1.5, rays=1000, chunks=(64, 64, 64), threads=1) -> d
     p = build_params("birch")
     src = WoodSource(p, thickness_um=thickness_mm * 1000, seed=1, chunks=chunks, threads=threads)
     t0 = time.perf_counter()
-    res = trace_beam(src, square_beam(rays, 300.0, seed=1), n_wall=1.50, n_poly=1.49,
+    res = trace_in_voxels(src, square_beam(rays, 300.0, seed=1), n_wall=1.50, n_poly=1.49,
                      settings=settings_for("accurate"), capacity=2048)
     dt = time.perf_counter() - t0
     s = summarize(res, n_boot=100)

@@ -129,7 +129,7 @@ def run_point(p: dict) -> dict:
     from pipeline.optics.rays import square_beam
     from pipeline.optics.settings import Optics, settings_for
     from pipeline.optics.trace import trace
-    from pipeline.optics.voxels import trace_beam
+    from pipeline.optics.voxels import trace_in_voxels
 
     kind, what, thickness, n_wall, n_poly = scenes()[p["scene"]]
     exact = p["method"] == "exact"
@@ -148,7 +148,7 @@ def run_point(p: dict) -> dict:
     if exact:
         res = trace(source, beam, Optics(n_wall, n_poly, None, SEED), settings)
     else:
-        res = trace_beam(source, beam, n_wall=n_wall, n_poly=n_poly, settings=settings, seed=SEED)
+        res = trace_in_voxels(source, beam, n_wall=n_wall, n_poly=n_poly, settings=settings, seed=SEED)
     wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
     # Its committed numbers are Lorentz maximum-likelihood widths (results/TRADEOFF.md says so).
     s = summarize(res, spec=FwhmSpec("lorentz-mle"), n_boot=N_BOOT, seed=SEED)

@@ -197,3 +197,102 @@ def keys_in_use(files, scales, cache) -> set:
             keys.update(s.key for s in plan.summaries)
             keys.update(p.key for p in plan.pools)
     return keys
+
+
+ACTIONS = ("ls", "verify", "gc")
+
+
+@dataclass(frozen=True)
+class CacheRequest:
+    """What ``twray cache`` asks: ``action`` on the cache folder ``cache``; for gc, the study and
+    camera files whose entries are kept (empty: every .yaml under ``studies/``) at ``scales``
+    (None: every scale) and ``dry_run``; for verify, whether to ``remove`` damaged entries."""
+
+    action: str
+    cache: Path
+    files: tuple = ()
+    scales: tuple | None = None
+    dry_run: bool = False
+    remove: bool = False
+
+    def validate(self) -> "CacheRequest":
+        from .params import ParameterError
+
+        if self.action not in ACTIONS:
+            raise ParameterError(f"`action` must be one of {', '.join(ACTIONS)}, got {self.action!r}")
+        if self.action != "gc" and (self.files or self.scales or self.dry_run):
+            raise ParameterError(f"`{self.action}` takes no study files, --scale or --dry-run (those are gc's)")
+        if self.action != "verify" and self.remove:
+            raise ParameterError(f"`{self.action}` takes no --remove (that is verify's)")
+        if not Path(self.cache).is_dir():
+            raise ParameterError(f"`cache` must be an existing folder, got cache={str(self.cache)!r}")
+        return self
+
+
+@dataclass
+class CacheOutcome:
+    """What ``run`` found and did: every entry; the damaged files with why (verify); the entries
+    removed or, with ``dry_run``, to remove (gc); what is not twray's and was left alone (gc)."""
+
+    request: CacheRequest
+    entries: list
+    damaged: list = field(default_factory=list)
+    dropped: list = field(default_factory=list)
+    left_alone: list = field(default_factory=list)
+
+    @property
+    def exit_code(self) -> int:
+        return 1 if self.damaged else 0
+
+
+def run(request: CacheRequest) -> CacheOutcome:
+    """List, verify or collect the cache of ``request`` (removing what it says to remove)."""
+    from .params import ParameterError
+    from .study.spec import SCALES
+
+    request = request.validate()
+    cache = Path(request.cache)
+    out = CacheOutcome(request, scan(cache))
+    if request.action == "verify":
+        out.damaged = [found for e in out.entries for found in verify(e)]
+        if request.remove:
+            for path, _ in out.damaged:
+                remove(path)
+    elif request.action == "gc":
+        files = list(request.files) or sorted(str(f) for f in Path("studies").rglob("*.yaml"))
+        if not files:
+            raise ParameterError("`files` must name the study and camera files whose entries to keep "
+                                 "(no studies/ folder here)")
+        keep = keys_in_use(files, list(request.scales or SCALES), cache)
+        # Only twray's own entries are removed: anything else found there is named and left.
+        out.left_alone = [e for e in out.entries if e.stage == "unknown"]
+        out.dropped = [e for e in out.entries
+                       if e.stage == "leftover" or (e.stage in STAGES and e.key not in keep)]
+        if not request.dry_run:
+            for e in out.dropped:
+                remove(e.path)
+    return out
+
+
+def describe(outcome: CacheOutcome, *, as_json: bool = False) -> tuple[list[str], str]:
+    """The lines for stdout (an entry, damaged file or removal each; with ``as_json``, ls's entries
+    as JSON objects) and the one-line total for stderr."""
+    from .limits import size
+
+    req = outcome.request
+    if req.action == "ls":
+        lines = [json.dumps({"stage": e.stage, "key": e.key, "bytes": e.size, "path": str(e.path),
+                             "about": e.about}) if as_json else
+                 f"{e.stage:8s} {e.key or '-':24s} {size(e.size):>9s}  {e.about or e.path.name}"
+                 for e in outcome.entries]
+        return lines, f"{len(outcome.entries)} entries, {size(sum(e.size for e in outcome.entries))} in {req.cache}"
+    if req.action == "verify":
+        removed = " (removed)" if req.remove and outcome.damaged else ""
+        return ([f"{path}: {why}" for path, why in outcome.damaged],
+                f"{len(outcome.entries)} entries verified, {len(outcome.damaged)} damaged{removed}")
+    verb = "would remove" if req.dry_run else "removed"
+    lines = [f"left alone {e.path} (not a twray cache entry)" for e in outcome.left_alone]
+    lines += [f"{verb} {e.path} ({size(e.size)})" for e in outcome.dropped]
+    gone = size(sum(e.size for e in outcome.dropped))
+    return lines, (f"{len(outcome.dropped)} entries ({gone}) {'to remove' if req.dry_run else 'removed'}, "
+                   f"{len(outcome.entries) - len(outcome.dropped)} kept")

@@ -272,6 +272,9 @@ def test_cache_ls_verify_and_gc(tmp_path, capsys):
     assert list((cache / "micro").iterdir()) == [] and list((cache / "summary").iterdir()) == []
     assert list((cache / "pool").iterdir()) == []
     assert main(["cache", "verify", "--cache", str(tmp_path / "nowhere")]) == 2
+    # A flag of another action is named, not ignored.
+    assert main(["cache", "ls", "--cache", str(cache), "--remove"]) == 2
+    assert main(["cache", "verify", "--cache", str(cache), "--dry-run"]) == 2
 
 
 def test_two_studies_run_at_once_on_one_cache_and_results_folder_both_succeed(tmp_path):

@@ -22,7 +22,7 @@ BIRCH = build_params("birch")
 
 def sheet(**kw) -> Sheet:
     base = dict(wood=BIRCH, seed=1, voxel_um=0.5, thickness_um=50.0, width_um=1500.0,
-                length_um=1000.0, ri_wall=1.54, ri_polymer=1.53, gap_um=2.0, r_axis="x")
+                length_um=1000.0, ri_polymer=1.53, delta_ri=0.01, gap_um=2.0, r_axis="x")
     base.update(kw)
     return Sheet(**base).validate()
 
@@ -114,13 +114,13 @@ def test_index_matched_sheet_gives_the_ideal_thin_lens_image():
     object, a twentieth of an object-plane pixel; tolerance 0.02 of the grey range."""
     cam = Camera(6.25, 162.5, 1.0, (31, 31), 0.5, 16).validate()
     t = make_target({"kind": "char", "char": "F", "size_mm": 0.35})
-    matched = render(cam, sheet(ri_wall=1.53, thickness_um=100.0), t)
+    matched = render(cam, sheet(delta_ri=0.0, thickness_um=100.0), t)
     ideal = ideal_image(cam, t)
     assert matched.interfaces > 10 * matched.image.size * cam.samples  # it did cross the cell walls
     assert matched.lost.sum() == 0
     assert np.abs(matched.image - ideal).max() < 0.02
     # Not a test that cannot fail: the same sheet at ΔRI = 0.03 departs from the ideal image.
-    scattering = render(cam, sheet(ri_wall=1.56, thickness_um=100.0), t)
+    scattering = render(cam, sheet(delta_ri=0.03, thickness_um=100.0), t)
     assert np.abs(scattering.image - ideal).max() > 0.2
 
 
@@ -146,7 +146,7 @@ def test_blur_is_anisotropic_and_wider_along_the_woods_R():
 # ---------------------------------------------------------------------- camera files and the pipeline
 CAMERA_FILE = """\
 title: test camera
-sheet: {thickness_mm: 0.1, ri_wall: 1.56, ri_polymer: 1.53}
+sheet: {thickness_mm: 0.1, ri_polymer: 1.53, delta_ri: 0.03}
 camera: {sensor_px: [9, 11], samples: 40, seed: 2}
 trace: {method: fast}
 images:
@@ -259,8 +259,14 @@ def test_an_image_that_stopped_part_way_keeps_its_row_blocks_and_the_rerun_rende
     ("sheet:\n  r_axis: z\nimages:\n  a:\n    focal_mm: 10\n    objective_mm: 30\n    aperture_mm: 1\n"
      "    object: {kind: square, size_mm: 1}\n", "line 2: `sheet.r_axis` must be x or y"),
     ("images:\n  a:\n    focal_mm: 10\n    objective_mm: 30\n    aperture_mm: 1\n"
-     "    sheet: {ri_wall: high}\n    object: {kind: square, size_mm: 1}\n",
-     "line 6: `images.a.sheet.ri_wall` must be a number"),
+     "    sheet: {delta_ri: high}\n    object: {kind: square, size_mm: 1}\n",
+     "line 6: `images.a.sheet.delta_ri` must be a number"),
+    ("images:\n  a:\n    focal_mm: 10\n    objective_mm: 30\n    aperture_mm: 1\n"
+     "    sheet: {delta_ri: 2}\n    object: {kind: square, size_mm: 1}\n",
+     "line 6: `delta_ri` and `ri_polymer` must give indices in [1, 3]"),
+    ("images:\n  a:\n    focal_mm: 10\n    objective_mm: 30\n    aperture_mm: 1\n"
+     "    sheet: {ri_wall: 1.54}\n    object: {kind: square, size_mm: 1}\n",
+     "line 6: `images.a.sheet.ri_wall` is given as `delta_ri`"),
     ("images:\n  a:\n    focal_mm: 0.2\n    objective_mm: 0.4\n    aperture_mm: 0.1\n"
      "    object: {kind: square, size_mm: 1}\n", "line 2: `images.a`: the sheet must lie between the lens"),
     ("trace:\n  method: fast\n  refine: 0\nimages:\n  a:\n    focal_mm: 10\n    objective_mm: 30\n"
@@ -288,7 +294,7 @@ def test_figure_5_file_holds_the_papers_three_configurations_and_a_control():
         assert c.camera.pixels == (51, 51) and c.camera.pitch_um == 0.5 and c.camera.samples == 200
         assert (c.sheet.thickness_um, c.sheet.width_um, c.sheet.length_um) == (500.0, 1500.0, 1000.0)
         assert c.sheet.ri_polymer == 1.53
-    assert [c.sheet.ri_wall for c in study.images] == [1.54, 1.54, 1.54, 1.53]
+    assert [c.sheet.optics.n_wall for c in study.images] == [1.54, 1.54, 1.54, 1.53]
 
 
 def test_method_replaces_the_files_trace_method_and_a_bad_one_is_one_line(tmp_path, capsys):
@@ -331,8 +337,8 @@ def test_exact_renders_through_the_woods_own_surfaces():
     """`exact` behind the camera: index matched, the ideal image; at ΔRI = 0.03, blurred."""
     cam = Camera(6.25, 162.5, 1.0, (9, 9), 1.7, 4).validate()
     t = make_target({"kind": "char", "char": "F", "size_mm": 0.35})
-    matched = render(cam, sheet(ri_wall=1.53, thickness_um=60.0), t, method="exact")
+    matched = render(cam, sheet(delta_ri=0.0, thickness_um=60.0), t, method="exact")
     assert matched.interfaces > 5 * matched.image.size * cam.samples and matched.lost.sum() == 0
     assert np.abs(matched.image - ideal_image(cam, t)).max() < 0.02
-    scattering = render(cam, sheet(ri_wall=1.56, thickness_um=60.0), t, method="exact")
+    scattering = render(cam, sheet(delta_ri=0.03, thickness_um=60.0), t, method="exact")
     assert np.abs(scattering.image - ideal_image(cam, t)).max() > 0.1

@@ -64,7 +64,7 @@ def test_on_thick_lattices_the_rays_that_part_are_parted_by_rounding_or_a_sliver
     rounding = _angle(ref.direction, nudged.direction) > 1e-10
     parted = np.flatnonzero((ang > 1e-9) & ~rounding)
     if parted.size:
-        log = lat.slab(300.0).trace_surfaces(beam.origins[parted], beam.unit_directions()[parted], n_wall=1.53,
+        log = lat.slab(300.0).march_walls(beam.origins[parted], beam.unit_directions()[parted], n_wall=1.53,
                                              n_poly=1.49, max_events=10_000, log_events=400)["log"]
         gaps = np.linalg.norm(np.diff(log[:, :, :3], axis=1), axis=2)
         sliver = ((gaps < 1e-7) & (log[:, 1:, 11] != log[:, :-1, 11])).any(axis=1)

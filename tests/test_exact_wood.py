@@ -193,7 +193,7 @@ def test_rays_that_leave_their_region_go_on_as_if_it_had_held_them(preset, chang
     for margin in (None, 4.0):
         surf = WoodSurface(p, thickness_um=thickness_um, seed=3, threads=2, margin_um=margin)
         dirs = np.tile(np.array([0.7, 0.6, 0.4]) / math.sqrt(1.01), (len(beam.origins), 1))  # oblique: they go far
-        out = surf.trace_surfaces(beam.origins, dirs, n_wall=1.49 + delta_ri, n_poly=1.49,
+        out = surf.march_walls(beam.origins, dirs, n_wall=1.49 + delta_ri, n_poly=1.49,
                                   max_events=100_000, log_events=400)
         runs.append((surf.left, out))
     (few, wide), (many, narrow) = runs
@@ -219,7 +219,7 @@ def test_a_ray_in_a_vessel_with_nothing_else_listed_gets_a_region_holding_the_po
     runs = []
     for margin in (None, 1200.0):
         surf = WoodSurface(p, thickness_um=1000.0, seed=9, margin_um=margin)
-        runs.append((surf, surf.trace_surfaces(origins, dirs, n_wall=1.50, n_poly=1.49, max_events=100_000)))
+        runs.append((surf, surf.march_walls(origins, dirs, n_wall=1.50, n_poly=1.49, max_events=100_000)))
     (small, out), (whole, ref) = runs
     assert small.left > 0 and whole.left == 0
     assert np.all(out["status"] == interface.TRANSMITTED)
@@ -231,7 +231,7 @@ def _missed_along_path(surf, origin, direction, n_wall, n_poly, per_um):
     """Trace one ray with its interfaces logged, and sample the generator's phase along every
     straight segment between them (every 1/per_um µm, the ends left out): the phase changes the
     trace did not stop at, as (segment, distance along it)."""
-    out = surf.trace_surfaces(origin[None], direction[None], n_wall=n_wall, n_poly=n_poly, max_events=10_000,
+    out = surf.march_walls(origin[None], direction[None], n_wall=n_wall, n_poly=n_poly, max_events=10_000,
                               log_events=2_000)
     log, ev = out["log"][0], int(out["events"][0])
     assert ev < 2_000

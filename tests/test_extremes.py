@@ -21,7 +21,7 @@ from pipeline.optics.sources import ArraySource, WoodSource
 from pipeline.optics.rays import Beam, square_beam
 from pipeline.optics.settings import Optics, settings_for
 from pipeline.optics.trace import trace
-from pipeline.optics.voxels import trace_beam
+from pipeline.optics.voxels import trace_in_voxels
 from pipeline.optics.lattice import tube_lattice
 from pipeline.params import ParameterError, build_params
 from pipeline.study.spec import load_study
@@ -52,7 +52,7 @@ def test_delta_ri_zero_and_1e_9_scatter_nothing_and_the_width_is_linear_in_delta
     beam = square_beam(60, 100.0, seed=1)
     widths = {}
     for dri in (0.0, 1e-9, -1e-9, 1e-6):
-        res = trace_beam(birch(60.0), beam, n_wall=1.49 + dri, n_poly=1.49, settings=settings_for(method))
+        res = trace_in_voxels(birch(60.0), beam, n_wall=1.49 + dri, n_poly=1.49, settings=settings_for(method))
         sound(res)
         # 60 rays: the Lorentz fit's width is the steadier measure of a scale (half-max is noisy on so few).
         s = summarize(res, spec=FwhmSpec("lorentz-mle"), n_boot=2)
@@ -70,7 +70,7 @@ def test_delta_ri_zero_and_1e_9_scatter_nothing_and_the_width_is_linear_in_delta
 @pytest.mark.parametrize("dri", [0.3, -0.3])
 def test_a_delta_ri_of_0_3_scatters_widely_and_reflects_rays_back_yet_every_ray_ends_finite(method, dri):
     n = 60 if method == "paper" else 150
-    res = trace_beam(birch(60.0), square_beam(n, 100.0, seed=1), n_wall=1.49 + dri, n_poly=1.49,
+    res = trace_in_voxels(birch(60.0), square_beam(n, 100.0, seed=1), n_wall=1.49 + dri, n_poly=1.49,
                      settings=settings_for(method))
     sound(res)
     counts = res.counts()
@@ -95,7 +95,7 @@ def test_a_ray_just_inside_the_critical_angle_refracts_and_just_past_it_reflects
     for eps in (-1e-6, -1e-3, 1e-6, 1e-3, 0.1):
         th = tc + eps
         d = np.array([-math.cos(th), math.sin(th), 0.0])  # angle th from the face's normal
-        res = trace_beam(ArraySource(vol), Beam(np.array([[40.3, 0.0, 16.0]]), d, np.arange(1)),
+        res = trace_in_voxels(ArraySource(vol), Beam(np.array([[40.3, 0.0, 16.0]]), d, np.arange(1)),
                          n_wall=n_wall, n_poly=n_poly, settings=settings_for(method, refine=1))
         sound(res)
         out = res.direction[0]
@@ -121,7 +121,7 @@ def test_rays_at_89_9_degrees_conserve_unit_directions_and_optical_momentum_alon
     if method == "exact":
         res = trace(lat.slab(20.0), beam, Optics(1.51, 1.49), settings_for("exact"))
     else:
-        res = trace_beam(lat.source(thickness_um=20.0, voxel_um=0.5), beam, n_wall=1.51, n_poly=1.49,
+        res = trace_in_voxels(lat.source(thickness_um=20.0, voxel_um=0.5), beam, n_wall=1.51, n_poly=1.49,
                          settings=settings_for(method, refine=1))
     sound(res)
     # Most are sent back by the first wall they skim; none is lost or left without a status.
@@ -141,7 +141,7 @@ def test_rays_at_89_9_degrees_conserve_unit_directions_and_optical_momentum_alon
 def test_grazing_incidence_from_air_refracts_to_the_critical_angle_and_leaves_parallel():
     vol = np.zeros((400, 40, 40), np.uint8)
     for method in METHODS:
-        res = trace_beam(ArraySource(vol), Beam(np.array([[20.0, 0.0, 20.0]]),
+        res = trace_in_voxels(ArraySource(vol), Beam(np.array([[20.0, 0.0, 20.0]]),
                                                 np.array([math.sin(math.radians(89.9)), math.cos(math.radians(89.9)), 0.0]),
                                                 np.arange(1)),
                          n_wall=1.5, n_poly=1.49, settings=settings_for(method, exit="air"), n_outside=1.0)
@@ -184,7 +184,7 @@ def test_a_sample_of_only_polymer_or_only_wall_is_a_clear_slab(method, phase):
     d = np.array([math.sin(math.radians(30)), math.cos(math.radians(30)), 0.0])
     rng = np.random.default_rng(1)
     origins = np.column_stack([rng.uniform(10, 50, 40), np.zeros(40), rng.uniform(10, 50, 40)])
-    res = trace_beam(ArraySource(vol), Beam(origins, d, np.arange(40)), n_wall=1.55, n_poly=1.49,
+    res = trace_in_voxels(ArraySource(vol), Beam(origins, d, np.arange(40)), n_wall=1.55, n_poly=1.49,
                      settings=settings_for(method, exit="air"), n_outside=1.0)
     sound(res)
     s = summarize(res, n_boot=2)
@@ -202,13 +202,13 @@ def test_a_ray_guided_by_total_internal_reflection_is_counted_at_the_event_cap_n
     vol[28:36] = 1
     d = np.array([math.sin(math.radians(20)), math.cos(math.radians(20)), 0.0])
     beam = Beam(np.array([[32.0, 0.0, 8.0]]), d, np.arange(1))
-    free = trace_beam(ArraySource(vol), beam, n_wall=1.79, n_poly=1.49, settings=settings_for("fast"))
+    free = trace_in_voxels(ArraySource(vol), beam, n_wall=1.79, n_poly=1.49, settings=settings_for("fast"))
     sound(free)
     bounces = 400 * math.tan(math.radians(20)) / 8
     assert free.status[0] == interface.TRANSMITTED and abs(free.events[0] - bounces) <= 2
     assert np.allclose(np.abs(free.direction[0]), d, atol=1e-9)  # every bounce is total: mirrored
     for method in METHODS:
-        capped = trace_beam(ArraySource(vol), beam, n_wall=1.79, n_poly=1.49,
+        capped = trace_in_voxels(ArraySource(vol), beam, n_wall=1.79, n_poly=1.49,
                             settings=settings_for(method, max_events=10))
         sound(capped)
         assert capped.counts()["trapped"] == 1 and capped.events[0] == 10
@@ -221,7 +221,7 @@ def test_five_millimetres_of_birch_trace_through_with_interfaces_in_proportion()
     beam = square_beam(4, 10.0, seed=3)
     events = {}
     for t_um in (1000.0, 5000.0):
-        res = trace_beam(birch(t_um, voxel_um=1.0), beam, n_wall=1.49, n_poly=1.49,
+        res = trace_in_voxels(birch(t_um, voxel_um=1.0), beam, n_wall=1.49, n_poly=1.49,
                          settings=settings_for("fast"))
         sound(res)
         assert res.counts()["transmitted"] == 4
@@ -230,7 +230,7 @@ def test_five_millimetres_of_birch_trace_through_with_interfaces_in_proportion()
     assert events[5000.0] / events[1000.0] == pytest.approx(5.0, rel=0.15)
     # ΔRI 0.01: about 700 refractions a ray, chaotic (a rounding difference grows past 1 rad over
     # a few hundred curved walls), so a ray may come back out; none may be trapped or lost.
-    res = trace_beam(birch(5000.0, voxel_um=1.0), square_beam(8, 10.0, seed=3), n_wall=1.50, n_poly=1.49,
+    res = trace_in_voxels(birch(5000.0, voxel_um=1.0), square_beam(8, 10.0, seed=3), n_wall=1.50, n_poly=1.49,
                      settings=settings_for("fast"))
     sound(res)
     counts = res.counts()
@@ -244,7 +244,7 @@ def test_voxels_of_0_0625_um_trace_the_same_wood_closer_to_its_limit():
     converge ray by ray, the finer the closer."""
     theta = {}
     for v in (0.5, 0.125, 0.0625):
-        res = trace_beam(birch(15.0, voxel_um=v), square_beam(100, 10.0 / v, seed=1), n_wall=1.50, n_poly=1.49,
+        res = trace_in_voxels(birch(15.0, voxel_um=v), square_beam(100, 10.0 / v, seed=1), n_wall=1.50, n_poly=1.49,
                          settings=settings_for("fast"))
         sound(res)
         assert res.counts()["transmitted"] == 100

@@ -12,7 +12,7 @@ from pipeline.optics import _normals, _packing, interface
 from pipeline.optics.sources import ArraySource, ChunkCache, WoodSource
 from pipeline.optics.rays import Beam, square_beam
 from pipeline.optics.settings import settings_for
-from pipeline.optics.voxels import trace_beam
+from pipeline.optics.voxels import trace_in_voxels
 from pipeline.optics.validation import (rod_deflection_deg, tube_deflection_deg, voxelised_rod,
                                        voxelised_sheet, voxelised_tube)
 from pipeline.params import ParameterError, build_params
@@ -68,7 +68,7 @@ def test_fresnel_reflectance_limits():
 def test_index_matched_rays_leave_undeflected_exactly(method):
     src = WoodSource(build_params("birch"), thickness_um=40.0, seed=3, chunks=(64, 64, 64))
     beam = square_beam(40 if method == "paper" else 200, 100.0, seed=4)
-    res = trace_beam(src, beam, n_wall=1.49, n_poly=1.49, settings=settings_for(method))
+    res = trace_in_voxels(src, beam, n_wall=1.49, n_poly=1.49, settings=settings_for(method))
     assert res.counts()["transmitted"] == len(beam.ray_ids)
     assert res.events.sum() > 0  # the rays did cross walls
     assert np.all(res.exit_direction == [0.0, 1.0, 0.0])
@@ -96,7 +96,7 @@ def test_flat_voxelised_interface_refracts_within_tolerance(alpha_deg, method):
     origins[:, 0] = np.linspace(54, 74, n)  # hit the plane well inside the volume
     origins[:, 2] = 16.0
     beam = Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(n))
-    res = trace_beam(ArraySource(vol, chunks=(128, 128, 32)), beam, n_wall=N_WALL, n_poly=N_POLY,
+    res = trace_in_voxels(ArraySource(vol, chunks=(128, 128, 32)), beam, n_wall=N_WALL, n_poly=N_POLY,
                      settings=settings_for(method))
     assert np.all(res.events == 1)
     # Invert Snell: the incidence angle that the measured deflection implies,
@@ -180,7 +180,7 @@ def test_a_square_beams_ray_positions_are_hashes_of_seed_and_ray_id():
 
 
 def test_a_cache_reuses_the_last_traces_buffers_but_none_of_its_voxels():
-    """trace_beam hands its chunk buffers to the next cache of the process (no
+    """trace_in_voxels hands its chunk buffers to the next cache of the process (no
     page faults again); what the last trace packed there must not show through."""
     from pipeline.optics import sources
 
@@ -188,8 +188,8 @@ def test_a_cache_reuses_the_last_traces_buffers_but_none_of_its_voxels():
     vol1, vol2 = ((rng.random((40, 50, 70)) < p).astype(np.uint8) for p in (0.7, 0.3))
     beam = square_beam(60, 30.0, (20, 35), seed=2)
     sources._SPARE.clear()
-    fresh = trace_beam(ArraySource(vol2, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
-    trace_beam(ArraySource(vol1, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
+    fresh = trace_in_voxels(ArraySource(vol2, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
+    trace_in_voxels(ArraySource(vol1, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
     bits = sources._SPARE[-1][0]
     assert ChunkCache(ArraySource(vol2, chunks=(16, 16, 64)), capacity=8).bits is not bits  # other shape
     probe = ChunkCache(ArraySource(vol2, chunks=(16, 32, 64)), capacity=8)
@@ -197,7 +197,7 @@ def test_a_cache_reuses_the_last_traces_buffers_but_none_of_its_voxels():
     probe.release()
     assert sources._SPARE[-1][0] is bits
     pool = len(sources._SPARE)
-    again = trace_beam(ArraySource(vol2, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
+    again = trace_in_voxels(ArraySource(vol2, chunks=(16, 32, 64)), beam, n_wall=N_WALL, n_poly=N_POLY)
     # Taken by the trace's cache and given back after it: had the trace made buffers of its own,
     # they would now be the newest spare (and the pool one longer, or ``bits`` dropped from it).
     assert len(sources._SPARE) == pool
@@ -220,14 +220,14 @@ def test_buffers_of_shorter_chunks_along_l_are_not_reused_and_the_rays_are_those
     beam = square_beam(60, 12.0, (32, 56), seed=4)  # L in the fourth segment of a chunk
     fast = settings_for("fast")
     sources._SPARE.clear()
-    fresh = trace_beam(ArraySource(vol), beam, n_wall=N_WALL, n_poly=N_POLY, settings=fast)
+    fresh = trace_in_voxels(ArraySource(vol), beam, n_wall=N_WALL, n_poly=N_POLY, settings=fast)
     sources._SPARE.clear()
-    trace_beam(ArraySource(short), beam, n_wall=N_WALL, n_poly=N_POLY, settings=fast)  # chunks (64, 64, 40)
+    trace_in_voxels(ArraySource(short), beam, n_wall=N_WALL, n_poly=N_POLY, settings=fast)  # chunks (64, 64, 40)
     assert sources._SPARE[-1][1].shape[2] == 3
     probe = ChunkCache(ArraySource(vol), capacity=8)
     assert probe.masks.shape[1:] == probe._masks_shape == (64, 4, 2, 1)
     probe.release()
-    again = trace_beam(ArraySource(vol), beam, n_wall=N_WALL, n_poly=N_POLY, settings=fast)
+    again = trace_in_voxels(ArraySource(vol), beam, n_wall=N_WALL, n_poly=N_POLY, settings=fast)
     assert np.array_equal(again.exit_direction, fresh.exit_direction)  # 0.46 apart with those buffers
     assert np.array_equal(again.events, fresh.events)
 
@@ -240,7 +240,7 @@ def test_a_process_packs_each_chunk_of_a_wood_once_and_traces_identically_from_t
 
     def run(seed):
         src = WoodSource(build_params("birch"), thickness_um=40.0, seed=seed, chunks=(32, 32, 32))
-        res = trace_beam(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("fast"))
+        res = trace_in_voxels(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("fast"))
         return src, res
 
     first_src, first = run(3)
@@ -345,7 +345,7 @@ def test_a_volume_with_other_values_than_0_and_1_is_refused():
     vol = np.zeros((20, 20, 20), np.uint8)
     vol[15, 3, 7] = 255
     with pytest.raises(ParameterError, match=r"0 \(polymer\) and 1 \(wall\) only, got values up to 255"):
-        trace_beam(ArraySource(vol, chunks=(16, 16, 16)), square_beam(20, 9.0, (10, 10), seed=1),
+        trace_in_voxels(ArraySource(vol, chunks=(16, 16, 16)), square_beam(20, 9.0, (10, 10), seed=1),
                    n_wall=N_WALL, n_poly=N_POLY)
 
 
@@ -353,8 +353,8 @@ def test_a_volume_with_other_values_than_0_and_1_is_refused():
 def test_volumes_of_other_dtypes_trace_like_uint8(dtype):
     vol = (np.random.default_rng(2).random((40, 30, 40)) < 0.3).astype(np.uint8)
     beam = square_beam(50, 20.0, (20, 20), seed=1)
-    ref = trace_beam(ArraySource(vol, chunks=(16, 16, 16)), beam, n_wall=N_WALL, n_poly=N_POLY)
-    got = trace_beam(ArraySource(vol.astype(dtype), chunks=(16, 16, 16)), beam, n_wall=N_WALL,
+    ref = trace_in_voxels(ArraySource(vol, chunks=(16, 16, 16)), beam, n_wall=N_WALL, n_poly=N_POLY)
+    got = trace_in_voxels(ArraySource(vol.astype(dtype), chunks=(16, 16, 16)), beam, n_wall=N_WALL,
                      n_poly=N_POLY)
     assert np.array_equal(got.exit_direction, ref.exit_direction)
     assert np.array_equal(got.status, ref.status)
@@ -366,7 +366,7 @@ def test_a_volume_value_that_is_neither_0_nor_1_is_named(bad, message):
     vol = np.zeros((20, 20, 20), np.float32 if bad == 0.5 else np.int16)
     vol[4, 3, 7] = bad
     with pytest.raises(ParameterError, match=message):
-        trace_beam(ArraySource(vol, chunks=(16, 16, 16)), square_beam(20, 9.0, (10, 10), seed=1),
+        trace_in_voxels(ArraySource(vol, chunks=(16, 16, 16)), square_beam(20, 9.0, (10, 10), seed=1),
                    n_wall=N_WALL, n_poly=N_POLY)
 
 
@@ -461,7 +461,7 @@ def rods(R, n_rods=8, rays=500, seed=0, method="accurate"):
         origins = np.zeros((rays, 3))
         origins[:, 0] = c0 + b
         origins[:, 2] = 16.0
-        res = trace_beam(ArraySource(vol, chunks=(nn, nn, 32)),
+        res = trace_in_voxels(ArraySource(vol, chunks=(nn, nn, 32)),
                          Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(rays)),
                          n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method))
         assert res.counts()["transmitted"] == rays
@@ -504,7 +504,7 @@ def test_thin_tube_walls_deflect_as_exact_optics(method, wall, median_deg, above
         exact = tube_deflection_deg(b, 30.0, wall, M_REL)
         keep = ~np.isnan(exact)  # not the rays totally reflected at the lumen
         origins = np.column_stack([c0 + b[keep], np.zeros(keep.sum()), np.full(keep.sum(), 16.0)])
-        res = trace_beam(ArraySource(vol, chunks=(102, 102, 32)),
+        res = trace_in_voxels(ArraySource(vol, chunks=(102, 102, 32)),
                          Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(keep.sum())),
                          n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method))
         t = res.transmitted
@@ -530,7 +530,7 @@ def test_a_one_voxel_flat_sheet_leaves_rays_parallel_to_themselves(method, phase
     for alpha in (60.0, 70.0):
         for off in rng.uniform(0, 1, 2):
             origins = np.column_stack([rng.uniform(44, 84, 100), np.zeros(100), np.full(100, 16.0)])
-            res = trace_beam(ArraySource(voxelised_sheet(alpha, off, phase=phase), chunks=(128, 128, 32)),
+            res = trace_in_voxels(ArraySource(voxelised_sheet(alpha, off, phase=phase), chunks=(128, 128, 32)),
                              Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(100)),
                              n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method))
             t = res.transmitted
@@ -548,7 +548,7 @@ def test_symmetry_deflection_is_odd_in_the_impact_parameter():
     origins[:30, 0] = 45 + b
     origins[30:, 0] = 45 - b
     origins[:, 2] = 16.0
-    res = trace_beam(ArraySource(vol, chunks=(nn, nn, 32)), Beam(origins, np.array([0.0, 1.0, 0.0]),
+    res = trace_in_voxels(ArraySource(vol, chunks=(nn, nn, 32)), Beam(origins, np.array([0.0, 1.0, 0.0]),
                      np.arange(60)), n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("accurate"))
     # Mirror images up to rounding (45 + b and 45 - b are not exact mirrors in floating point).
     assert np.allclose(res.theta_r[:30], -res.theta_r[30:], atol=1e-7)
@@ -561,7 +561,7 @@ def test_reversibility_exit_ray_traced_back_arrives_at_the_entry_ray():
     origins = np.zeros((20, 3))
     origins[:, 0] = 45.3 + np.linspace(-18, 18, 20)
     origins[:, 2] = 16.0
-    fwd = trace_beam(ArraySource(vol, chunks=(nn, nn, 32)), Beam(origins, np.array([0.0, 1.0, 0.0]),
+    fwd = trace_in_voxels(ArraySource(vol, chunks=(nn, nn, 32)), Beam(origins, np.array([0.0, 1.0, 0.0]),
                      np.arange(20)), n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("accurate"))
     # Trace back: flip T so the exit face becomes the entrance, reverse R and L.
     back_origins = fwd.position.copy()
@@ -569,7 +569,7 @@ def test_reversibility_exit_ray_traced_back_arrives_at_the_entry_ray():
     back_dirs = fwd.direction * [-1.0, 1.0, -1.0]
     backs = []
     for r in range(20):
-        res = trace_beam(ArraySource(vol[:, ::-1, :].copy(), chunks=(nn, nn, 32)),
+        res = trace_in_voxels(ArraySource(vol[:, ::-1, :].copy(), chunks=(nn, nn, 32)),
                          Beam(back_origins[r:r + 1], back_dirs[r], np.arange(1)),
                          n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("accurate"))
         backs.append((res.position[0], res.direction[0]))
@@ -590,7 +590,7 @@ def test_axial_direction_component_is_conserved_along_a_straight_fibre():
     origins = np.zeros((30, 3))
     origins[:, 0] = 40.2 + np.linspace(-19, 19, 30)
     origins[:, 2] = 10.0
-    res = trace_beam(ArraySource(vol, chunks=(nn, nn, nL)), Beam(origins, d, np.arange(30)),
+    res = trace_in_voxels(ArraySource(vol, chunks=(nn, nn, nL)), Beam(origins, d, np.arange(30)),
                      n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("accurate"))
     ok = res.transmitted
     assert ok.sum() > 20 and res.events[ok].max() >= 4
@@ -603,23 +603,23 @@ def test_exact_traversal_never_tunnels_through_a_one_voxel_wall():
     vol[:, 20, :] = 1  # a wall one voxel thick, perpendicular to T
     rng = np.random.default_rng(5)
     origins = np.column_stack([rng.uniform(20, 44, 300), np.zeros(300), rng.uniform(20, 44, 300)])
-    exact = trace_beam(ArraySource(vol), Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(300)),
+    exact = trace_in_voxels(ArraySource(vol), Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(300)),
                        n_wall=1.49, n_poly=1.49, settings=settings_for("fast"))
     assert np.all(exact.events == 2)
     # Oblique rays too (index matched, so they go straight through).
     for k in range(20):
         d = unit([rng.uniform(-1, 1), rng.uniform(0.3, 1), rng.uniform(-1, 1)])
-        one = trace_beam(ArraySource(vol), Beam(origins[k:k + 1], d, np.arange(1)),
+        one = trace_in_voxels(ArraySource(vol), Beam(origins[k:k + 1], d, np.arange(1)),
                          n_wall=1.49, n_poly=1.49, settings=settings_for("accurate"))
         if one.counts()["transmitted"]:
             assert one.events[0] == 2
     # The paper's 2-voxel steps sample T = 2, 4, ...: a wall at odd T is jumped over.
     odd = np.zeros((n, n, n), np.uint8)
     odd[:, 21, :] = 1
-    paper = trace_beam(ArraySource(odd), Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(300)),
+    paper = trace_in_voxels(ArraySource(odd), Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(300)),
                        n_wall=1.49, n_poly=1.49, settings=settings_for("paper"))
     assert np.all(paper.events == 0)
-    exact_odd = trace_beam(ArraySource(odd), Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(300)),
+    exact_odd = trace_in_voxels(ArraySource(odd), Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(300)),
                            n_wall=1.49, n_poly=1.49, settings=settings_for("fast"))
     assert np.all(exact_odd.events == 2)
 
@@ -628,7 +628,7 @@ def test_exact_traversal_never_tunnels_through_a_one_voxel_wall():
 def test_every_ray_ends_with_a_status_and_none_is_dropped():
     src = WoodSource(build_params("birch"), thickness_um=60.0, seed=2, chunks=(64, 64, 64))
     beam = square_beam(150, 100.0, seed=7, direction=(0.6, 0.3, 0.2))
-    res = trace_beam(src, beam, n_wall=1.60, n_poly=1.40, settings=settings_for("fast"))
+    res = trace_in_voxels(src, beam, n_wall=1.60, n_poly=1.40, settings=settings_for("fast"))
     counts = res.counts()
     assert sum(counts.values()) == 150
     assert counts["transmitted"] > 0 and counts["reflected"] + counts["trapped"] > 0
@@ -637,7 +637,7 @@ def test_every_ray_ends_with_a_status_and_none_is_dropped():
 def test_lazy_wood_traces_only_visit_the_chunks_they_need():
     src = WoodSource(build_params("birch"), thickness_um=200.0, seed=1, chunks=(64, 64, 64))
     beam = square_beam(100, 60.0, seed=1)
-    res = trace_beam(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("fast"))
+    res = trace_in_voxels(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("fast"))
     assert res.counts()["transmitted"] == 100
     # 60 µm = 120 voxels footprint: 2-3 chunks across in R and L, 7 along T.
     assert 7 <= src.generated <= 3 * 3 * 7 + 10
@@ -648,7 +648,7 @@ def test_results_do_not_depend_on_chunk_shape_or_residency():
     out = []
     for chunks, cap in [((64, 64, 64), 512), ((48, 40, 56), 20)]:
         src = WoodSource(build_params("birch"), thickness_um=80.0, seed=6, chunks=chunks)
-        res = trace_beam(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("accurate"),
+        res = trace_in_voxels(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for("accurate"),
                          capacity=cap)
         out.append((res.direction, res.events, res.status))
     assert np.array_equal(out[0][0], out[1][0])
@@ -694,13 +694,13 @@ def test_an_oblique_beam_measures_haze_from_its_own_direction(exit):
     d_air = unit([math.tan(math.radians(15.0)), 1.0, math.tan(math.radians(-6.0))])
     beam = square_beam(150, 60.0, seed=4, direction=d_air)
     settings = settings_for("fast", exit=exit)
-    res = trace_beam(src, beam, n_wall=N_POLY, n_poly=N_POLY, settings=settings, n_outside=1.0)
+    res = trace_in_voxels(src, beam, n_wall=N_POLY, n_poly=N_POLY, settings=settings, n_outside=1.0)
     s = summarize(res, n_boot=5)
     assert s["n_transmitted"] == 150 and s["haze"] == 0.0 and s["fwhm_r_deg"] == 0.0
     assert np.array_equal(res.exit_direction, res.incident)
     if exit == "air":
         assert np.allclose(res.incident, d_air, atol=1e-14)  # Snell in and out of the slab
-    res = trace_beam(src, beam, n_wall=N_POLY + 0.04, n_poly=N_POLY, settings=settings, n_outside=1.0)
+    res = trace_in_voxels(src, beam, n_wall=N_POLY + 0.04, n_poly=N_POLY, settings=settings, n_outside=1.0)
     t = res.transmitted
     dev = np.degrees(np.arccos(np.clip(np.sum(res.exit_direction[t] * res.incident[t], axis=1), -1, 1)))
     h = summarize(res, n_boot=5)["haze"]
@@ -719,7 +719,7 @@ def test_small_chunks_and_small_capacity_still_finish_identically(method):
     out = []
     for chunks, cap in [((8, 8, 8), 8), ((16, 16, 16), 8), ((64, 64, 64), 512)]:
         src = WoodSource(build_params("birch"), thickness_um=30.0, seed=4, chunks=chunks)
-        res = trace_beam(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method),
+        res = trace_in_voxels(src, beam, n_wall=N_WALL, n_poly=N_POLY, settings=settings_for(method),
                          capacity=cap)
         assert res.counts()["transmitted"] == 40
         out.append(res.direction)
@@ -745,7 +745,7 @@ def test_user_volumes_load_from_npy_zarr_and_tiff_folders_alike(tmp_path):
     for path in ("v.npy", "v.zarr", "tiff"):
         loaded = load_volume(tmp_path / path)
         assert np.array_equal(np.asarray(loaded[:]), vol)
-        res = trace_beam(ArraySource(loaded, chunks=(16, 16, 16)), beam, n_wall=1.6, n_poly=1.4,
+        res = trace_in_voxels(ArraySource(loaded, chunks=(16, 16, 16)), beam, n_wall=1.6, n_poly=1.4,
                          settings=settings_for("fast"))
         results.append((res.direction, res.status))
     for d, st in results[1:]:
@@ -764,7 +764,7 @@ def test_rays_from_air_refract_into_a_slab_and_out_parallel_to_themselves(method
     angles = np.radians([0.0, 5.0, 20.0, 40.0, -30.0, 60.0])
     dirs = np.column_stack([np.sin(angles), np.cos(angles), np.zeros_like(angles)])
     origins = np.array([[20.0, 0.0, 10.0 + 40 * (i % 2)] for i in range(angles.size)])
-    res = trace_beam(ArraySource(vol), Beam(origins, dirs, np.arange(angles.size)),
+    res = trace_in_voxels(ArraySource(vol), Beam(origins, dirs, np.arange(angles.size)),
                      n_wall=1.54, n_poly=1.49, settings=settings_for(method, exit="air"),
                      n_outside=1.0)
     assert res.counts()["transmitted"] == angles.size and np.all(res.events == 0)
@@ -779,7 +779,7 @@ def test_rays_from_air_refract_into_a_slab_and_out_parallel_to_themselves(method
 def test_index_matched_interfaces_are_counted_but_never_deflect():
     src = WoodSource(build_params("birch"), thickness_um=20.0, seed=2)
     beam = square_beam(50, 40.0, seed=1, direction=(0.2, 1.0, -0.1))
-    res = trace_beam(src, beam, n_wall=1.53, n_poly=1.53, settings=settings_for("fast"))
+    res = trace_in_voxels(src, beam, n_wall=1.53, n_poly=1.53, settings=settings_for("fast"))
     assert res.events.sum() > 100
     assert np.array_equal(res.direction, np.tile(beam.direction / np.linalg.norm(beam.direction), (50, 1)))
 

@@ -66,7 +66,7 @@ def _figure(study: CameraStudy, images: list, path: Path) -> None:
         axes[0, k].set_xlabel("µm", fontsize=7)
         axes[1, k].imshow(img, cmap="gray", vmin=0, vmax=1)
         sheet = ("no sheet" if cfg.sheet is None else
-                 f"{cfg.sheet.thickness_um / 1000:g} mm, ΔRI {cfg.sheet.ri_wall - cfg.sheet.ri_polymer:.3g}, "
+                 f"{cfg.sheet.thickness_um / 1000:g} mm, ΔRI {cfg.sheet.delta_ri:.3g}, "
                  f"gap {cfg.sheet.gap_um:g} µm")
         axes[1, k].set_title(f"f {cfg.camera.focal_mm:g} mm, {sheet}", fontsize=7)
         axes[1, k].set_xlabel("sensor pixel", fontsize=7)
@@ -127,7 +127,7 @@ def camera_dataset(study: CameraStudy, entries: list[Entry]):
             "aperture_mm": per_image([c.camera.aperture_mm for c in cfgs], "mm", "aperture diameter"),
             "magnification": per_image([c.camera.magnification for c in cfgs], "1", "thin-lens magnification"),
             "gap_um": per_image(sheet_value(lambda s: s.gap_um), "um", "sheet exit face to object plane"),
-            "delta_ri": per_image(sheet_value(lambda s: s.ri_wall - s.ri_polymer), "1",
+            "delta_ri": per_image(sheet_value(lambda s: s.delta_ri), "1",
                                   "refractive-index difference, cell wall minus polymer (NaN: no sheet)"),
             "thickness_um": per_image(sheet_value(lambda s: s.thickness_um), "um", "sheet thickness"),
             "object": ("config", np.array([c.target.name for c in cfgs], dtype=object), {"long_name": "object"}),

@@ -103,13 +103,19 @@ class Sheet:
     thickness_um: float
     width_um: float  # along R
     length_um: float  # along L
-    ri_wall: float
     ri_polymer: float
+    delta_ri: float  # the wall's index minus the polymer's
     gap_um: float  # exit face to object plane
     r_axis: str = "x"  # the sensor axis along the wood's R
 
+    @property
+    def optics(self) -> Optics:
+        """The sheet's optics: its two indices, lit from air."""
+        return Optics.of_delta(self.ri_polymer, self.delta_ri, n_outside=1.0, seed=self.seed)
+
     def validate(self) -> "Sheet":
-        for name in ("voxel_um", "thickness_um", "width_um", "length_um", "ri_wall", "ri_polymer"):
+        self.optics.validate()
+        for name in ("voxel_um", "thickness_um", "width_um", "length_um"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ParameterError(f"`{name}` must be > 0, got {name}={v!r}")
@@ -215,7 +221,7 @@ def render_rows(camera: Camera, sheet: Sheet | None, target: Target, rows, *,
         dirs = np.column_stack([dr, dd[:, 2], dl])
         ids = (pid[:, None] * S + np.arange(S)[None, :]).reshape(-1)
         res = trace(medium, Beam(origins, dirs, ids),
-                    Optics(sheet.ri_wall, sheet.ri_polymer, n_outside=1.0, seed=sheet.seed), settings)
+                    sheet.optics, settings)
         interfaces = float(res.events.sum())
         loads = res.diagnostics.get("chunks_loaded", 0)
         xr = res.position[:, 0] * mm

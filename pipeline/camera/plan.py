@@ -42,6 +42,10 @@ def image_record(cfg: ImageConfig) -> dict:
     if cfg.sheet is not None:
         sheet = dataclasses.asdict(cfg.sheet)
         sheet["wood"] = cfg.sheet.wood.key_dict()
+        # The key holds the two indices the trace uses, not the file's spelling of them.
+        optics = cfg.sheet.optics
+        del sheet["delta_ri"]
+        sheet["ri_wall"], sheet["ri_polymer"] = optics.n_wall, optics.n_poly
         if cfg.settings.medium_kind == "voxels":  # the chunks it reads
             sheet["micro"] = wood_record(cfg.sheet.wood, cfg.sheet.seed,
                                          traced_voxel_um(cfg.sheet.voxel_um, cfg.settings))

@@ -95,7 +95,7 @@ def describe(outcome: CameraOutcome, results: str) -> list[str]:
         n = d["image"].size * c.camera.samples
         lines.append(f"  {c.name}: f {c.camera.focal_mm:g} mm, m {c.camera.magnification:.4g}, "
                      + ("no sheet" if c.sheet is None else
-                        f"ΔRI {c.sheet.ri_wall - c.sheet.ri_polymer:.3g}, gap {c.sheet.gap_um:g} µm, "
+                        f"ΔRI {c.sheet.delta_ri:.3g}, gap {c.sheet.gap_um:g} µm, "
                         f"{float(d['interfaces_per_ray']):.1f} interfaces/ray")
                      + f", {int(d['lost'].sum())}/{n} samples lost")
     return lines + [f"wrote {len(outcome.paths)} files under {Path(results)} in {outcome.seconds:.1f} s"]

@@ -5,7 +5,7 @@ by its images, and the images themselves::
 
     title: "Figure 5"
     sheet: {preset: birch, wood: {}, seed: 1, voxel_um: 0.5, thickness_mm: 0.5,
-            width_mm: 1.5, length_mm: 1.0, ri_wall: 1.54, ri_polymer: 1.53, r_axis: x}
+            width_mm: 1.5, length_mm: 1.0, ri_polymer: 1.53, delta_ri: 0.01, r_axis: x}
     camera: {sensor_px: [51, 51], pitch_um: 0.5, samples: 200, seed: 1}
     trace: {method: fast, fresnel: false}
     images:
@@ -17,7 +17,7 @@ by its images, and the images themselves::
         object: {kind: char, char: T, size_mm: 0.5}
       control:
         ...
-        sheet: {ri_wall: 1.53}     # per-image changes of the sheet, or `sheet: none`
+        sheet: {delta_ri: 0}       # per-image changes of the sheet, or `sheet: none`
 
 ``--scale small`` keeps the geometry and divides the aperture samples and
 the sheet thickness (see :data:`SCALES`).  Every unknown key or bad value
@@ -46,12 +46,12 @@ SCALES = {
 
 _TOP = {"title", "description", "sheet", "camera", "trace", "images"}
 _SHEET = {"preset", "wood", "seed", "voxel_um", "thickness_mm", "width_mm", "length_mm",
-          "ri_wall", "ri_polymer", "r_axis"}
+          "ri_polymer", "delta_ri", "r_axis"}
 _CAMERA = {"sensor_px", "pitch_um", "samples", "seed"}
 _TRACE = {"method", "fresnel", "refine"}
 _IMAGE = {"focal_mm", "objective_mm", "aperture_mm", "gap_um", "object", "sheet", "description"}
 _SHEET_DEFAULTS = {"preset": "birch", "seed": 1, "voxel_um": 0.5, "thickness_mm": 0.5,
-                   "width_mm": 1.5, "length_mm": 1.0, "ri_wall": 1.54, "ri_polymer": 1.53,
+                   "width_mm": 1.5, "length_mm": 1.0, "ri_polymer": 1.53, "delta_ri": 0.01,
                    "r_axis": "x"}
 
 
@@ -96,6 +96,9 @@ def load_camera(path, *, scale: str = "paper", method: str | None = None) -> Cam
         if not isinstance(value, dict):
             fail(keys, f"`{name}` must be a mapping, got {value!r}")
         for k in value:
+            if k == "ri_wall" and "delta_ri" in known:
+                fail(keys + (k,), f"`{name}.ri_wall` is given as `delta_ri`, the wall's index minus the "
+                                  f"polymer's (ri_wall 1.54 with ri_polymer 1.53 is delta_ri: 0.01)")
             if k not in known:
                 fail(keys + (k,), f"unknown key `{name}.{k}` (known: {', '.join(sorted(known))})")
         return value
@@ -232,9 +235,13 @@ def _sheet(s: dict, own, gap_um: float, f: dict, fail, number, integer, keys) ->
         thickness_um=thickness_um,
         width_um=1000.0 * number(s["width_mm"], loc("width_mm"), "> 0 mm", lambda v: v > 0),
         length_um=1000.0 * number(s["length_mm"], loc("length_mm"), "> 0 mm", lambda v: v > 0),
-        ri_wall=number(s["ri_wall"], loc("ri_wall"), index_rule, index_ok),
         ri_polymer=number(s["ri_polymer"], loc("ri_polymer"), index_rule, index_ok),
+        delta_ri=number(s["delta_ri"], loc("delta_ri"), "a number", lambda v: True),
         gap_um=gap_um, r_axis=r_axis)
+    try:
+        sheet.optics.validate()
+    except ParameterError as exc:
+        fail(loc("delta_ri"), str(exc))
     try:
         return sheet.validate()
     except ParameterError as exc:

@@ -6,9 +6,7 @@ import sys
 import time
 from pathlib import Path
 
-from .. import limits
 from ..params import ParameterError
-from ..study.spec import SCALES
 from .args import out_path, subparser
 
 
@@ -36,69 +34,14 @@ def add_cache(sub):
 def cmd_cache(args) -> int:
     from .. import inventory
 
-    cache = Path(args.cache)
-    if args.action != "gc" and (args.files or args.scale or args.dry_run):
-        raise ParameterError(f"`{args.action}` takes no study files, --scale or --dry-run (those are gc's)")
-    if not cache.is_dir():
-        raise ParameterError(f"`cache` must be an existing folder, got cache={str(cache)!r}")
-    entries = inventory.scan(cache)
-    return {"ls": _cache_ls, "verify": _cache_verify, "gc": _cache_gc}[args.action](args, cache, entries)
-
-
-def _cache_ls(args, cache: Path, entries) -> int:
-    """Every entry (one JSON object a line with --json), and the total on stderr."""
-    import json
-
-    for e in entries:
-        if args.json:
-            print(json.dumps({"stage": e.stage, "key": e.key, "bytes": e.size, "path": str(e.path),
-                              "about": e.about}))
-        else:
-            print(f"{e.stage:8s} {e.key or '-':24s} {limits.size(e.size):>9s}  {e.about or e.path.name}")
-    total = sum(e.size for e in entries)
-    print(f"{len(entries)} entries, {limits.size(total)} in {cache}", file=sys.stderr)
-    return 0
-
-
-def _cache_verify(args, cache: Path, entries) -> int:
-    """Each damaged entry (removed with --remove); exit 1 if any."""
-    from .. import inventory
-
-    damaged = 0
-    for e in entries:
-        for path, why in inventory.verify(e):
-            print(f"{path}: {why}")
-            damaged += 1
-            if args.remove:
-                inventory.remove(path)
-    print(f"{len(entries)} entries verified, {damaged} damaged"
-          f"{' (removed)' if args.remove and damaged else ''}", file=sys.stderr)
-    return 1 if damaged else 0
-
-
-def _cache_gc(args, cache: Path, entries) -> int:
-    """Remove the entries no study or camera file uses (at the given scales), and leftovers."""
-    from .. import inventory
-
-    files = args.files or sorted(str(f) for f in Path("studies").rglob("*.yaml"))
-    if not files:
-        raise ParameterError("`files` must name the study and camera files whose entries to keep "
-                             "(no studies/ folder here)")
-    scales = args.scale or list(SCALES)
-    keep = inventory.keys_in_use(files, scales, cache)
-    # Only twray's own entries are removed: anything else found there is named and left.
-    for e in entries:
-        if e.stage == "unknown":
-            print(f"left alone {e.path} (not a twray cache entry)")
-    drop = [e for e in entries if e.stage == "leftover" or (e.stage in inventory.STAGES and e.key not in keep)]
-    for e in drop:
-        print(f"{'would remove' if args.dry_run else 'removed'} {e.path} ({limits.size(e.size)})")
-        if not args.dry_run:
-            inventory.remove(e.path)
-    kept = len(entries) - len(drop)
-    print(f"{len(drop)} entries ({limits.size(sum(e.size for e in drop))}) "
-          f"{'to remove' if args.dry_run else 'removed'}, {kept} kept", file=sys.stderr)
-    return 0
+    request = inventory.CacheRequest(args.action, Path(args.cache), tuple(args.files),
+                                     tuple(args.scale) if args.scale else None, args.dry_run, args.remove)
+    outcome = inventory.run(request)
+    lines, total = inventory.describe(outcome, as_json=args.json)
+    for line in lines:
+        print(line)
+    print(total, file=sys.stderr)
+    return outcome.exit_code
 
 
 FIGURE_KINDS = ("microstructure", "trajectories", "studies", "histograms", "camera", "design", "wave")

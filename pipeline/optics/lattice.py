@@ -167,7 +167,7 @@ class LatticeSlab:
         pos = np.asarray(origins_um, np.float64).reshape(-1, 3)
         return np.array([self.lattice.phase([r], [0.0])[0, 0] for r in pos[:, 0]], np.uint8)
 
-    def trace_surfaces(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int,
+    def march_walls(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int,
                        fresnel: bool = False, seed: int = 0, ray_ids=None, log_events: int = 0) -> dict:
         lat = self.lattice
         pos = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)

@@ -54,9 +54,9 @@ class SurfaceMedium(Protocol):
     def entry_phase(self, origins_um: np.ndarray) -> np.ndarray:
         """The phase (1 wall, 0 polymer) each ray enters at its entry point (T = 0)."""
 
-    def trace_surfaces(self, origins_um: np.ndarray, directions: np.ndarray, *, n_wall: float, n_poly: float,
+    def march_walls(self, origins_um: np.ndarray, directions: np.ndarray, *, n_wall: float, n_poly: float,
                        max_events: int, fresnel: bool = False, seed: int = 0, ray_ids=None) -> dict:
-        """Trace rays from their entry points (T = 0, directions inside the sample) to where they
+        """March rays from their entry points (T = 0, directions inside the sample) to where they
         leave; returns per-ray arrays ``position`` [µm], ``direction``, ``status``, ``events``,
         ``path`` [µm], ``medium`` (the phase each ends in) and any extras of the medium's own.
         With ``fresnel``, a refracted ray is reflected instead with the Fresnel reflectance, drawn

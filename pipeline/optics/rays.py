@@ -27,7 +27,7 @@ class Beam:
     ray's index in its beam (the key of its random streams).
 
     Given to :func:`pipeline.optics.trace.trace`, positions are in µm; the
-    voxel backend's own ``trace_beam`` takes them in voxels.
+    voxel backend's own ``trace_in_voxels`` takes them in voxels.
     """
 
     origins: np.ndarray
@@ -82,7 +82,7 @@ VOXEL_COUNTS = ("degenerate_normals", "face_disagreements", "thin_wall_normals",
 @dataclass
 class RayResult:
     """Per-ray outcome of a trace (angles in degrees; positions and lengths in µm from
-    :func:`pipeline.optics.trace.trace`, in voxels from the voxel backend's ``trace_beam``)."""
+    :func:`pipeline.optics.trace.trace`, in voxels from the voxel backend's ``trace_in_voxels``)."""
 
     position: np.ndarray  # (N, 3) exit (or last) point
     direction: np.ndarray  # (N, 3) final direction inside the sample

@@ -62,7 +62,7 @@ class _SurfaceInterior:
         return self.medium.entry_phase(origins)
 
     def march(self, origins, dirs, phase, ray_ids, *, optics: Optics, settings: TraceSettings):
-        out = self.medium.trace_surfaces(origins, dirs, n_wall=optics.n_wall, n_poly=optics.n_poly,
+        out = self.medium.march_walls(origins, dirs, n_wall=optics.n_wall, n_poly=optics.n_poly,
                                          max_events=settings.max_events, fresnel=settings.fresnel, seed=optics.seed,
                                          ray_ids=ray_ids)
         return out, {}

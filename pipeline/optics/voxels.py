@@ -1,7 +1,7 @@
 """The voxel backend: a beam traced through a two-phase voxel volume (methods paper, fast and
 accurate; docs/methods.md#voxel-methods).
 
-:func:`trace_beam` pages chunks in as rays need them, runs the Numba kernel,
+:func:`trace_in_voxels` pages chunks in as rays need them, runs the Numba kernel,
 answers paper-mode SVM requests, and returns a :class:`RayResult` with one
 entry per ray, positions and lengths in voxels.  No ray is ever dropped: each
 ends transmitted, reflected back out, out through a side, or trapped.
@@ -192,7 +192,7 @@ class VoxelInterior:
         return out, {"chunks_loaded": int(loads), "traced_voxel_um": float(source.voxel_um)}
 
 
-def trace_beam(source, beam: Beam, *, n_wall: float, n_poly: float,
+def trace_in_voxels(source, beam: Beam, *, n_wall: float, n_poly: float,
                settings: TraceSettings = PRESETS["accurate"], seed: int = 0,
                capacity: int = 512, n_outside: float | None = None) -> RayResult:
     """Trace ``beam`` (positions in voxels) through the voxel ``source`` (an ArraySource,

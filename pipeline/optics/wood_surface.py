@@ -168,7 +168,7 @@ class WoodSurface:
         pos[:, 1] = 0.0
         return phases(pos, 0.0, self._context(pos, 1.0))
 
-    def trace_surfaces(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int,
+    def march_walls(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int,
                        fresnel: bool = False, seed: int = 0, ray_ids=None, log_events: int = 0) -> dict:
         pos0 = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
         pos0[:, 1] = 0.0

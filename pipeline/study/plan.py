@@ -146,7 +146,7 @@ def rays_record(scene: Scene, micro: str | None) -> dict:
     on the lattice, the sample and beam in µm and, for a voxel method, the voxel.
     """
     rec = {"stage": "rays", "version": versions.STAGES["rays"], "tracer": versions.tracer(scene.settings.method),
-           "n_wall": scene.n_wall, "n_poly": scene.ri_polymer, "settings": scene.settings.to_dict()}
+           "n_wall": scene.optics.n_wall, "n_poly": scene.optics.n_poly, "settings": scene.settings.to_dict()}
     if scene.reference is not None:
         voxel = scene.traced_voxel_um if scene.settings.medium_kind == "voxels" else None
         return {**rec, "reference": scene.reference.to_dict(), "lattice_seed": scene.seed, "traced_voxel_um": voxel,

@@ -50,7 +50,7 @@ from typing import Any
 from ..analysis import FwhmSpec, Target
 from ..optics.references import REFERENCE_FIELDS, REFERENCES, Reference, reference
 from ..optics.settings import (INDEX_RANGE, Optics, TraceSettings, check_paper_step, chosen_method, settings_for,
-                               traced_voxel_um, wall_index)
+                               traced_voxel_um)
 from ..params import (ParameterError, WOOD_FIELDS, WoodParams, check_voxel, coerce_field, load_preset,
                       read_yaml_file, validate, yaml_locator)
 
@@ -100,10 +100,6 @@ class Scene:
     def pitch_um(self) -> float:
         """The cell pitch of what is traced [µm] (interfaces per µm scale as its inverse)."""
         return self.reference.pitch_um if self.reference is not None else self.wood.fibre_diameter_um
-
-    @property
-    def n_wall(self) -> float:
-        return wall_index(self.ri_polymer, self.delta_ri)
 
     @property
     def optics(self) -> Optics:
@@ -366,9 +362,9 @@ def _scene(combo, *, base, wood, ref_base, overrides, axes, scale, voxel_um, set
         except ParameterError as exc:
             fail(("voxel_um",), str(exc))
         wall = params.wall_thickness_um
-    n_poly = scene_vars["ri_polymer"]
+    ri_polymer = scene_vars["ri_polymer"]
     try:
-        Optics.of_delta(n_poly, scene_vars["delta_ri"]).validate()
+        Optics.of_delta(ri_polymer, scene_vars["delta_ri"]).validate()
     except ParameterError as exc:
         fail(("vary",), str(exc))
     try:
@@ -378,7 +374,7 @@ def _scene(combo, *, base, wood, ref_base, overrides, axes, scale, voxel_um, set
     if thickness_um < voxel_um:
         fail(("thickness_mm",), f"`thickness_mm` must be at least one voxel at scale {scale}, "
                                 f"got {thickness_um:g} µm")
-    return Scene(value=v, wood=params, thickness_um=thickness_um, ri_polymer=n_poly,
+    return Scene(value=v, wood=params, thickness_um=thickness_um, ri_polymer=ri_polymer,
                  delta_ri=scene_vars["delta_ri"], reference=ref, **scene)
 
 
