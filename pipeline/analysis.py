@@ -6,7 +6,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize
 
 HAZE_ANGLE_DEG = 2.5
 
@@ -35,6 +34,8 @@ def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
         g = np.exp(log_g)
         return -np.sum(np.log(g / np.pi) - np.log((x - loc) ** 2 + g * g))
 
+    from scipy import optimize  # Nelder-Mead, where Newton fails: rare, and its import is slow
+
     with np.errstate(divide="ignore", invalid="ignore"):
         res = optimize.minimize(nll, [med, np.log(scale0)], method="Nelder-Mead",
                                 options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 4000})
@@ -44,8 +45,13 @@ def cauchy_fit(theta_deg: np.ndarray) -> tuple[float, float]:
 def cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 100):
     """Newton's method with a backtracking line search on the Cauchy log-likelihood in
     (θ0, log γ), from (``loc``, ``log_g``); None when it does not converge (the caller then
-    uses Nelder-Mead).  About twenty times faster than Nelder-Mead, to the same optimum."""
+    uses Nelder-Mead).  About twenty times faster than Nelder-Mead, to the same optimum; each step
+    is compiled (:func:`pipeline._cauchy.newton_step`, the same numbers as in NumPy)."""
+    from ._cauchy import newton_step
+
+    x = np.ascontiguousarray(x, dtype=np.float64)
     n = x.size
+    work = np.empty((6, max(n, 4)))
 
     def nll(m, s):
         if 2.0 * s > 700.0:  # γ beyond any angle (e^350 degree): a step the line search must shorten
@@ -54,25 +60,16 @@ def cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 10
 
     f = nll(loc, log_g)
     for _ in range(max_iter):
-        g2 = math.exp(2 * log_g)
-        d = x - loc
-        q = d * d + g2
-        w = 1.0 / q
-        grad = np.array([np.sum(-2.0 * d * w), np.sum(2.0 * g2 * w) - n])
-        w2 = w * w
-        h = np.array([[np.sum(2.0 * (g2 - d * d) * w2), np.sum(4.0 * d * g2 * w2)],
-                      [np.sum(4.0 * d * g2 * w2), np.sum(4.0 * g2 * d * d * w2)]])
-        try:
-            step = -np.linalg.solve(h, grad)
-            if not np.all(np.isfinite(step)) or float(step @ grad) >= 0.0:
-                raise np.linalg.LinAlgError
-        except np.linalg.LinAlgError:
-            step = -grad / max(np.abs(np.diag(h)).max(), 1e-300)  # not convex here: descend
+        step, slope, ok = newton_step(x, loc, log_g, math.exp(2 * log_g), work)
+        if not ok:  # not convex here: descend
+            grad = work[5, :2].copy()
+            step = -grad / max(max(work[5, 2], work[5, 3]), 1e-300)
+            slope = float(step @ grad)
         t = 1.0
         while True:
             m1, s1 = loc + t * step[0], log_g + t * step[1]
             f1 = nll(m1, s1)
-            if f1 <= f + 1e-4 * t * float(step @ grad) or t < 1e-10:
+            if f1 <= f + 1e-4 * t * slope or t < 1e-10:
                 break
             t *= 0.5
         if not math.isfinite(f1) or t < 1e-10:
@@ -256,30 +253,36 @@ def lorentz_hist_of_counts(counts: np.ndarray, bins: Bins, *, iterations: int = 
     amp = y[rows, k]
     p = np.stack([amp, c[k], np.maximum(np.sum(y >= amp[:, None] / 2, axis=1) * bins.step / 2, bins.step / 2)], axis=1)
 
-    def residual(p):
+    def residual(p, y):
         u = (c[None] - p[:, 1:2]) / p[:, 2:3]
         return p[:, 0:1] / (1.0 + u * u) - y, u
 
-    r, u = residual(p)
+    r, u = residual(p, y)
     cost = np.sum(r * r, axis=1)
     lam = np.full(b, 1e-3)
     done = np.zeros(b, dtype=bool)
+    # Each row is fitted on its own: the rows not done yet are taken out, stepped and put back (a row's
+    # numbers do not depend on the others').
     for _ in range(iterations):
-        q = 1.0 / (1.0 + u * u)
-        jac = np.stack([q, p[:, 0:1] * 2 * u * q * q / p[:, 2:3], p[:, 0:1] * 2 * u * u * q * q / p[:, 2:3]], axis=2)
+        act = np.flatnonzero(~done)
+        pa, ua, ra, la = p[act], u[act], r[act], lam[act]
+        q = 1.0 / (1.0 + ua * ua)
+        jac = np.stack([q, pa[:, 0:1] * 2 * ua * q * q / pa[:, 2:3], pa[:, 0:1] * 2 * ua * ua * q * q / pa[:, 2:3]],
+                       axis=2)
         jtj = np.einsum("bmi,bmj->bij", jac, jac)
-        g = np.einsum("bmi,bm->bi", jac, r)
-        a = jtj + lam[:, None, None] * np.eye(3)[None] * np.maximum(np.diagonal(jtj, axis1=1, axis2=2), 1e-300)[:, :, None]
+        g = np.einsum("bmi,bm->bi", jac, ra)
+        a = jtj + la[:, None, None] * np.eye(3)[None] * np.maximum(np.diagonal(jtj, axis1=1, axis2=2), 1e-300)[:, :, None]
         step = -np.linalg.solve(a, g[:, :, None])[:, :, 0]
-        trial = p + step
+        trial = pa + step
         trial[:, 2] = np.abs(trial[:, 2])
-        rt, ut = residual(trial)
+        rt, ut = residual(trial, y[act])
         ct = np.sum(rt * rt, axis=1)
-        better = (ct <= cost) & ~done
+        better = ct <= cost[act]
         small = better & (np.abs(step[:, 2]) <= 1e-10 * trial[:, 2]) & (np.abs(step[:, 1]) <= 1e-10 * bins.step)
-        p[better], r[better], u[better], cost[better] = trial[better], rt[better], ut[better], ct[better]
-        lam = np.where(better, lam / 3.0, lam * 4.0)
-        done |= small | (lam > 1e12)
+        up = act[better]
+        p[up], r[up], u[up], cost[up] = trial[better], rt[better], ut[better], ct[better]
+        lam[act] = la = np.where(better, la / 3.0, la * 4.0)
+        done[act] = small | (la > 1e12)
         if done.all():
             break
     return np.where(np.isfinite(p[:, 2]) & (p[:, 2] > 0), 2.0 * p[:, 2], np.nan)
@@ -376,11 +379,11 @@ def haze_ci(haze_fraction: float, n: int, *, level: float = 0.95) -> tuple[float
     Unlike the normal approximation it stays inside [0, 1] and is not empty at
     a haze of 0 or 1; with no ray it is (NaN, NaN).
     """
-    from scipy.stats import norm
+    from scipy.special import ndtri  # the normal quantile (scipy.stats' norm.ppf; that import is slow)
 
     if n < 1 or not math.isfinite(haze_fraction):
         return float("nan"), float("nan")
-    z = float(norm.ppf(0.5 + level / 2.0))
+    z = float(ndtri(0.5 + level / 2.0))
     centre = (haze_fraction + z * z / (2 * n)) / (1 + z * z / n)
     half = z / (1 + z * z / n) * math.sqrt(haze_fraction * (1 - haze_fraction) / n + z * z / (4 * n * n))
     return max(0.0, min(haze_fraction, centre - half)), min(1.0, max(haze_fraction, centre + half))

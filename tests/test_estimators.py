@@ -140,3 +140,30 @@ def test_variance_components_are_recovered_from_two_level_data():
     assert c["between_woods"] == pytest.approx(sd_b, rel=0.3)
     # Widths of identical woods: the between-wood part is small against the ray part.
     assert out["components"]["fwhm_r"]["between_woods"] < 0.5 * out["components"]["fwhm_r"]["rays_per_wood"]
+
+
+def test_the_compiled_cauchy_fit_takes_numpys_steps_bit_for_bit():
+    """The bootstrap's Cauchy fits run their Newton steps compiled (pipeline/_cauchy.py): its sum is
+    NumPy's pairwise sum and its step the one NumPy's formulas give, to the last bit, so a summary
+    is the same number whichever computes it; and the fit still finds a known Lorentzian."""
+    from pipeline._cauchy import newton_step, pairwise_sum
+    from pipeline.analysis import cauchy_newton
+
+    rng = np.random.default_rng(5)
+    for n in [1, 2, 7, 8, 9, 127, 128, 129, 1000, 4097, 40_000]:
+        x = rng.standard_cauchy(n)
+        assert pairwise_sum(x) == np.sum(x)
+    x = 3.0 + 0.7 * rng.standard_cauchy(1500)
+    loc, log_g = float(np.median(x)), math.log(0.5)
+    g2 = math.exp(2 * log_g)
+    d = x - loc
+    w = 1.0 / (d * d + g2)
+    grad = np.array([np.sum(-2.0 * d * w), np.sum(2.0 * g2 * w) - x.size])
+    w2 = w * w
+    h = np.array([[np.sum(2.0 * (g2 - d * d) * w2), np.sum(4.0 * d * g2 * w2)],
+                  [np.sum(4.0 * d * g2 * w2), np.sum(4.0 * g2 * d * d * w2)]])
+    step, slope, ok = newton_step(x, loc, log_g, g2, np.empty((6, x.size)))
+    want = -np.linalg.solve(h, grad)
+    assert ok and step[0] == want[0] and step[1] == want[1] and slope == float(want @ grad)
+    fit_loc, fit_g = cauchy_newton(x, loc, log_g)
+    assert abs(fit_loc - 3.0) < 0.1 and abs(fit_g - 0.7) < 0.1
