@@ -23,7 +23,7 @@ from numba import njit
 _BLOCK = 128  # NumPy's PW_BLOCKSIZE
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _block(a, lo, n):
     """NumPy's pairwise sum of a[lo:lo + n] for n <= 128: eight partial sums."""
     if n < 8:
@@ -33,10 +33,8 @@ def _block(a, lo, n):
         return res
     r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
     r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
-    i = 8
     whole = n - n % 8
-    while i < whole:
-        j = lo + i
+    for j in range(lo + 8, lo + whole, 8):
         r0 += a[j]
         r1 += a[j + 1]
         r2 += a[j + 2]
@@ -45,39 +43,65 @@ def _block(a, lo, n):
         r5 += a[j + 5]
         r6 += a[j + 6]
         r7 += a[j + 7]
-        i += 8
     res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[lo + i]
-        i += 1
+    for j in range(lo + whole, lo + n):
+        res += a[j]
     return res
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _leaf_terms(x, lo, n, loc, g2, buf, out):
+    """The five sums of the Newton step's terms over the leaf x[lo:lo + n] (n <= 128), each NumPy's
+    pairwise sum of that leaf, into ``out``; ``buf``: (5, 128) scratch."""
+    b0, b1, b2, b3, b4 = buf[0], buf[1], buf[2], buf[3], buf[4]
+    c1 = 2.0 * g2
+    c4 = 4.0 * g2
+    for k in range(n):
+        d = x[lo + k] - loc
+        w = 1.0 / (d * d + g2)
+        w2 = w * w
+        b0[k] = (-2.0 * d) * w
+        b1[k] = c1 * w
+        b2[k] = (2.0 * (g2 - d * d)) * w2
+        b3[k] = ((4.0 * d) * g2) * w2
+        b4[k] = ((c4 * d) * d) * w2
+    out[0] = _block(b0, 0, n)
+    out[1] = _block(b1, 0, n)
+    out[2] = _block(b2, 0, n)
+    out[3] = _block(b3, 0, n)
+    out[4] = _block(b4, 0, n)
+
+
 @njit(cache=True, nogil=True)
-def pairwise_sum(a):
-    """``np.sum(a)`` of a contiguous 1-D float64 array, bit for bit: NumPy halves a range of more
-    than 128 terms (the first half a multiple of eight) and adds the halves' sums.  Written with a
-    stack: a recursive kernel read back from Numba's cache can crash."""
-    n = a.size
-    if n <= _BLOCK:
-        return _block(a, 0, n)
-    # Post-order walk of the halving tree: (lo, n, visited) frames and the partial sums.
+def _tree(a, x, loc, g2, buf, five):
+    """NumPy's pairwise sum over n = len(a or x) terms: of ``a`` (``five`` None), or of the Newton
+    step's five terms of ``x`` into ``five``.  NumPy halves a range of more than 128 terms (the first
+    half a multiple of eight) and adds the halves' sums; written with a stack, since a recursive
+    kernel read back from Numba's cache can crash."""
+    n = x.size if five is not None else a.size
     los = np.empty(64, np.int64)
     ns = np.empty(64, np.int64)
     seen = np.zeros(64, np.bool_)
-    sums = np.empty(64)
+    sums = np.empty((64, 5))
+    leaf = np.empty(5)
     top = 0
     vals = 0
     los[0], ns[0], seen[0] = 0, n, False
     while top >= 0:
         lo, m = los[top], ns[top]
         if m <= _BLOCK:
-            sums[vals] = _block(a, lo, m)
+            if five is not None:
+                _leaf_terms(x, lo, m, loc, g2, buf, leaf)
+                for k in range(5):
+                    sums[vals, k] = leaf[k]
+            else:
+                sums[vals, 0] = _block(a, lo, m)
             vals += 1
             top -= 1
         elif seen[top]:
             vals -= 1
-            sums[vals - 1] = sums[vals - 1] + sums[vals]
+            for k in range(5):
+                sums[vals - 1, k] = sums[vals - 1, k] + sums[vals, k]
             top -= 1
         else:
             seen[top] = True
@@ -87,7 +111,16 @@ def pairwise_sum(a):
             los[top + 1], ns[top + 1], seen[top + 1] = lo + half, m - half, False
             los[top + 2], ns[top + 2], seen[top + 2] = lo, half, False
             top += 2
-    return sums[0]
+    if five is not None:
+        for k in range(5):
+            five[k] = sums[0, k]
+    return sums[0, 0]
+
+
+@njit(cache=True, nogil=True)
+def pairwise_sum(a):
+    """``np.sum(a)`` of a contiguous 1-D float64 array, bit for bit."""
+    return _tree(a, a, 0.0, 0.0, np.empty((5, _BLOCK)), None)
 
 
 @njit(cache=True, nogil=True)
@@ -96,28 +129,18 @@ def newton_step(x, loc, log_g, g2, work):
     ``log_g``), ``g2`` = exp(2 log γ), and its slope along the gradient: (step, slope, ok); not ok
     where the Hessian is singular or the step not finite or not a descent (the caller then descends
     along the gradient, in ``work[5, :2]``, scaled by the Hessian's diagonal, ``|h|`` in
-    ``work[5, 2:4]``).  ``work``: (6, max(n, 4)) scratch."""
+    ``work[5, 2:4]``).  ``work``: (6, 128) scratch."""
     n = x.size
-    t_g0, t_g1, t_h00, t_h01, t_h11 = work[0, :n], work[1, :n], work[2, :n], work[3, :n], work[4, :n]
-    for i in range(n):
-        d = x[i] - loc
-        q = d * d + g2
-        w = 1.0 / q
-        w2 = w * w
-        t_g0[i] = (-2.0 * d) * w
-        t_g1[i] = (2.0 * g2) * w
-        t_h00[i] = (2.0 * (g2 - d * d)) * w2
-        t_h01[i] = ((4.0 * d) * g2) * w2
-        t_h11[i] = (((4.0 * g2) * d) * d) * w2
+    sums = np.empty(5)
+    _tree(x, x, loc, g2, work, sums)
     grad = np.empty(2)
-    grad[0] = pairwise_sum(t_g0)
-    grad[1] = pairwise_sum(t_g1) - n
-    h01 = pairwise_sum(t_h01)
+    grad[0] = sums[0]
+    grad[1] = sums[1] - n
     h = np.empty((2, 2))
-    h[0, 0] = pairwise_sum(t_h00)
-    h[0, 1] = h01
-    h[1, 0] = h01
-    h[1, 1] = pairwise_sum(t_h11)
+    h[0, 0] = sums[2]
+    h[0, 1] = sums[3]
+    h[1, 0] = sums[3]
+    h[1, 1] = sums[4]
     work[5, 0] = grad[0]
     work[5, 1] = grad[1]
     work[5, 2] = abs(h[0, 0])

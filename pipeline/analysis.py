@@ -51,12 +51,18 @@ def cauchy_newton(x: np.ndarray, loc: float, log_g: float, *, max_iter: int = 10
 
     x = np.ascontiguousarray(x, dtype=np.float64)
     n = x.size
-    work = np.empty((6, max(n, 4)))
+    work = np.empty((6, 128))
+    buf = np.empty(n)
 
     def nll(m, s):
         if 2.0 * s > 700.0:  # γ beyond any angle (e^350 degree): a step the line search must shorten
             return math.inf
-        return float(np.sum(np.log((x - m) ** 2 + math.exp(2 * s)))) - n * s
+        # sum(log((x - m)² + γ²)) − n log γ, in place (the same operations as the expression)
+        np.subtract(x, m, out=buf)
+        np.multiply(buf, buf, out=buf)
+        np.add(buf, math.exp(2 * s), out=buf)
+        np.log(buf, out=buf)
+        return float(np.add.reduce(buf)) - n * s
 
     f = nll(loc, log_g)
     for _ in range(max_iter):
