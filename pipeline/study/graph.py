@@ -22,6 +22,18 @@ class Graph:
     weights: dict = field(default_factory=dict)  # trace task key: its estimated CPU-seconds, for the time left
 
 
+def wood_of(scene, shard) -> str:
+    """What a shard's trace builds and keeps per wood (chunks, distortion tiles, vessels): its wood
+    chunk store for a voxel method, else the wood's (or lattice's) parameters and seed; the same for
+    every value and study that share the wood."""
+    from ..cache import cache_key
+
+    if shard.micro is not None:
+        return shard.micro
+    what = scene.reference.to_dict() if scene.reference is not None else scene.wood.key_dict()
+    return cache_key({"wood": what, "seed": scene.seed})
+
+
 def build_graph(plans: list[Plan]) -> Graph:
     """Dask delayed objects computing every missing stage of ``plans``."""
     import dask
@@ -56,6 +68,7 @@ def build_graph(plans: list[Plan]) -> Graph:
     summaries = []
     pools = []
     weights: dict[str, float] = {}
+    wood_rank: dict[str, int] = {}
     n_trace = 0
     for plan in plans:
         done = {}
@@ -76,9 +89,13 @@ def build_graph(plans: list[Plan]) -> Graph:
                     for name in ("rays", "shard"):
                         labels[f"{name}-{shard.key[:12]}"] = f"{what}, rays {shard.lo}-{shard.hi}"
                     weights[f"rays-{shard.key[:12]}"] = shard_estimate(sc, shard.hi - shard.lo).cpu_s
-                    traced.append(dask.delayed(trace_shard, pure=False)(
-                        micro_args.get(wood), scene, constant(shard, f"shard-{shard.key[:12]}"),
-                        *micro_tasks.get(wood, ()), dask_key_name=f"rays-{shard.key[:12]}"))
+                    # Wood by wood: a worker keeps a wood's distortion tiles while it traces that wood's
+                    # shards, of every value and study that share the wood, instead of building them again.
+                    rank = wood_rank.setdefault(wood_of(sc, shard), len(wood_rank))
+                    with dask.annotate(priority=-rank):
+                        traced.append(dask.delayed(trace_shard, pure=False)(
+                            micro_args.get(wood), scene, constant(shard, f"shard-{shard.key[:12]}"),
+                            *micro_tasks.get(wood, ()), dask_key_name=f"rays-{shard.key[:12]}"))
             shards = constant(plan.shards_of(summ), f"shards-{summ.key[:12]}")
             done[summ.key] = dask.delayed(summarize_scene, pure=False)(
                 scene, constant(summ, f"summ-{summ.key[:12]}"), shards, *traced,
