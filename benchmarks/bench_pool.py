@@ -14,6 +14,7 @@ from pipeline.summary import reduce_angles
 
 def main():
     rng = np.random.default_rng(0)
+    reduce_angles([(rng.standard_cauchy(50), rng.standard_cauchy(50), np.ones(50))] * 2)  # compiled kernels loaded
     rows = []
     for woods, rays in ((3, 200), (5, 1000), (16, 1000), (40, 1000)):
         parts = [(5 * rng.standard_normal(rays) + rng.standard_cauchy(rays), 0.5 * rng.standard_cauchy(rays),

@@ -34,7 +34,7 @@ CONFIRM_DEFAULT_H = 2.0
 # holds a few cases within 1.5x of what the commands use.
 STARTUP_CPU_S = 1.6  # a process importing twray and loading its compiled kernels (the command, each worker)
 IMPORT_CPU_S = 1.0  # a command that reads or writes volumes only (export-tiff, a lazy generate)
-BASE_MEMORY = 300e6  # a process with twray's libraries and kernels loaded (220-320 MB measured)
+BASE_MEMORY = 260e6  # a process with twray's libraries and kernels loaded (220-320 MB measured)
 # Voxels generated per CPU-second into a store, its compression and pyramid included: fibre ellipses (birch
 # 71-88 M/s), rotated plies (46 M/s), balsa's polygons (17 M/s).
 GENERATE_VOXELS_PER_CPU_S = {"ellipse": 80e6, "plies": 45e6, "polygon": 17e6}
@@ -67,8 +67,8 @@ SHARD_BYTES, SHARD_RAY_BYTES, ENTRY_BYTES, DATASET_BYTES = 7e3, 120.0, 2.2e3, 15
 # small `exact` study (4 scenes, 5.9 CPU-s in all) and Table 1's study 2 at --scale quick (30, 20.8).
 SCENE_CPU_S, DATASET_CPU_S = 0.3, 0.5
 # A value's pool: every estimator on 2000 resamples of its woods (and of its rays), about linear in
-# the rays pooled (benchmarks/bench_pool.py: 2.0 CPU-s for 3 woods × 200 rays, 11.5 for 40 × 1000).
-POOL_CPU_S, POOL_CPU_S_PER_RAY = 2.0, 2.4e-4
+# the rays pooled (benchmarks/bench_pool.py: 0.86 CPU-s for 3 woods × 200 rays, 8.2 for 40 × 1000).
+POOL_CPU_S, POOL_CPU_S_PER_RAY = 0.9, 1.9e-4
 SPREAD = 1.25  # chunks generated around the beam's column by spreading rays, as a factor
 CHUNK = 64  # voxels along a chunk edge in the study cache
 SHOW_ESTIMATE_S = 60.0  # commands estimated above this many CPU-seconds print their estimate first
