@@ -18,6 +18,7 @@ from . import __version__, limits
 from .analysis import FwhmSpec, Target
 from .summary import summarize
 from .optics.interface import STATUS_NAMES
+from .optics.iso import IsoVolume
 from .optics.rays import square_beam
 from .optics.references import Reference, scene_medium
 from .optics.settings import Optics, TraceSettings, check_paper_step, traced_voxel_um
@@ -51,6 +52,7 @@ class TraceJob:
     incidence_deg: tuple | None = None
     target: Target | None = None
     fwhm: FwhmSpec = FwhmSpec()  # which width FWHM_R and FWHM_L are
+    iso: float | None = None  # method iso: the wall's grey level (None: Otsu's threshold of the volume)
 
     @property
     def traced_voxel_um(self) -> float:
@@ -67,18 +69,25 @@ def medium_of(job: TraceJob):
     """The medium ``job`` traces and the centre (R, L) of its beam [µm], after checking that the
     beam fits and the trace is not too big (before any work)."""
     if job.volume:
-        if job.settings.medium_kind != "voxels":
+        if job.settings.medium_kind == "surfaces":
             raise ParameterError(f"`method` {job.settings.method} traces the analytic surfaces of generated wood, "
-                                 f"and a --volume has voxels only: use --method accurate (or fast, paper)")
+                                 f"and a --volume has voxels only: use --method iso (its grey levels' "
+                                 f"iso-surface) or accurate (fast, paper: its voxels)")
         if job.settings.refine > 1:
             raise ParameterError(f"`refine` applies to generated wood (--preset); a --volume has only its "
                                  f"own voxels, got refine={job.settings.refine}")
-        medium = ArraySource(load_volume(job.volume), voxel_um=job.voxel_um)
+        if job.settings.medium_kind == "fields":
+            medium = IsoVolume(load_volume(job.volume), voxel_um=job.voxel_um, iso=job.iso)
+        else:
+            medium = ArraySource(load_volume(job.volume), voxel_um=job.voxel_um)
         nr, nt, nl = medium.shape
         centre = (nr * job.voxel_um / 2.0, nl * job.voxel_um / 2.0)
         # A user volume's cell pitch is unknown: the estimate assumes birch's.
         thickness_um, pitch, wall = nt * job.voxel_um, build_params("birch").fibre_diameter_um, None
     else:
+        if job.settings.medium_kind == "fields":
+            raise ParameterError("`method` iso traces the iso-surface of a grey-level scan: give --volume "
+                                 "(generated wood and references have exact surfaces: --method exact)")
         if job.reference is None:
             check_voxel(job.voxel_um, job.wood)  # whatever the method
             if job.settings.medium_kind == "voxels":  # a voxel grid only where there are voxels
@@ -134,6 +143,8 @@ def trace_medium(job: TraceJob, medium, centre, *, progress: str = "off") -> tup
     if job.target is not None:
         summary["target_ci"] = job.target.to_dict()
         summary["target_ci_met"] = job.target.met(summary)
+    if job.settings.medium_kind == "fields":  # the threshold the walls were traced at, and where it came from
+        summary.update({"iso": medium.iso, "iso_from": medium.iso_from})
     summary.update({"delta_ri": job.optics.delta_ri, "ri_polymer": job.optics.n_poly,
                     "incidence_deg": list(job.incidence_deg or (0.0, 0.0)),
                     "seconds": time.perf_counter() - t0, **result.diagnostics})
@@ -153,7 +164,7 @@ def job_inputs(job: TraceJob, centre) -> dict:
             "voxel_um": job.voxel_um, "traced_voxel_um": job.traced_voxel_um, "delta_ri": job.optics.delta_ri,
             "ri_polymer": job.optics.n_poly, "rays": job.rays, "beam_um": job.beam_um,
             "beam_centre_um": list(centre), "incidence_deg": list(job.incidence_deg or (0.0, 0.0)),
-            "seed": job.seed, "settings": job.settings.to_dict(), "fwhm": job.fwhm.to_dict()}
+            "seed": job.seed, "settings": job.settings.to_dict(), "fwhm": job.fwhm.to_dict(), "iso": job.iso}
 
 
 def _finite_or_none(value):

@@ -13,7 +13,7 @@ def add_trace(sub):
     p = subparser(sub, "trace", help="trace a beam through a volume and report FWHM_R, FWHM_L, haze")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--volume", help="user volume: .npy, .zarr or a folder of TIFF slices "
-                                      "(axes R, T, L; 1 = wall)")
+                                      "(axes R, T, L; 1 = wall; grey levels with --method iso)")
     src.add_argument("--preset", help="generate wood lazily from this species preset")
     src.add_argument("--reference", help="a reference lattice of exact optics: tubes-square, tubes-hex, cells-hex "
                                          "or cells-square (with --pitch-um and --wall-um)")
@@ -37,8 +37,11 @@ def add_trace(sub):
                    help="beam direction in air as angles R,L [degree] of its projections on the R-T and "
                         "L-T planes from +T (default 0,0: perpendicular to the L-R face); the beam "
                         "refracts into the sample, and haze is measured from this direction")
-    p.add_argument("--method", default=None, help="paper, fast, accurate or exact (default: exact for generated "
-                                                  "wood and references, accurate for a --volume)")
+    p.add_argument("--method", default=None, help="paper, fast, accurate, exact or iso (default: exact for "
+                                                  "generated wood and references, accurate for a --volume; iso: "
+                                                  "a grey-level --volume's iso-surface)")
+    p.add_argument("--iso", default=None, help="with --method iso: the wall's grey level (default: Otsu's "
+                                               "threshold of the volume, stated in the output)")
     p.add_argument("--exit", default="internal", help="angles inside the sample (internal) or in air")
     p.add_argument("--fresnel", action="store_true", help="partial Fresnel reflection")
     p.add_argument("--step-vox", default=None, help="paper marching step [voxels] (default 2)")
@@ -81,7 +84,7 @@ def cmd_trace(args) -> int:
     met = "" if target is None else (
         "; target_ci met" if summary["target_ci_met"] else f"; target_ci NOT met at max_rays {target.max_rays}")
     print(f"{summary['n_transmitted']}/{summary['n_rays']} transmitted "
-          f"(method {summary['method']}, exit {summary['exit']}): "
+          f"(method {summary['method']}{_iso_text(summary)}, exit {summary['exit']}): "
           f"FWHM_R {summary['fwhm_r_deg']:.3f}°, FWHM_L {summary['fwhm_l_deg']:.3f}° ({job.fwhm.estimator}), "
           f"haze {100 * summary['haze']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}], "
           f"{summary['seconds']:.1f} s{met}")
@@ -118,6 +121,11 @@ def _trace_job(args):
     elif args.volume and METHODS.get(args.method) == "voxels":
         changes["refine"] = 1  # a user volume is traced on its own voxels
     settings = settings_for(check_method(args.method), **changes)
+    iso = None
+    if args.iso is not None:
+        if settings.method != "iso":
+            raise ParameterError(f"`--iso` applies to --method iso, got --method {settings.method}")
+        iso = number(args.iso, "iso")
     wood = thickness_um = ref = None
     lattice_args = {"--pitch-um": args.pitch_um, "--wall-um": args.wall_um, "--r-outer-um": args.r_outer_um,
                     "--jitter": None if args.jitter == "0" else args.jitter}
@@ -150,7 +158,14 @@ def _trace_job(args):
     return TraceJob(settings=settings, optics=optics, rays=rays, beam_um=beam_um, voxel_um=voxel,
                     seed=optics.seed, volume=args.volume, wood=wood, reference=ref, thickness_um=thickness_um,
                     beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target,
-                    fwhm=fwhm_spec)
+                    fwhm=fwhm_spec, iso=iso)
+
+
+def _iso_text(summary: dict) -> str:
+    """Method iso: the threshold traced, and whether it was given or Otsu's."""
+    if "iso" not in summary:
+        return ""
+    return f" at grey level {summary['iso']:.6g}" + (" (Otsu's threshold)" if summary["iso_from"] == "otsu" else "")
 
 
 def _fwhm_spec(name: str):

@@ -64,7 +64,10 @@ class SurfaceMedium(Protocol):
 
 
 def kind_of(medium) -> str:
-    """"voxels" or "surfaces": which protocol ``medium`` answers."""
+    """"voxels", "surfaces" or "fields": which protocol ``medium`` answers (a field, a grey-level
+    scan's iso-surface, marches its own walls as a surface medium does, and says so)."""
+    if getattr(medium, "medium_kind", None) == "fields" and isinstance(medium, SurfaceMedium):
+        return "fields"
     if isinstance(medium, SurfaceMedium):
         return "surfaces"
     if isinstance(medium, VoxelMedium):

@@ -13,8 +13,9 @@ from dataclasses import asdict, dataclass, fields, replace
 from ..params import ParameterError
 
 # Each method and the kind of medium it traces: "voxels" (a chunked two-phase volume,
-# docs/methods.md#voxel-methods) or "surfaces" (analytic walls, docs/methods.md#exact-references).
-METHODS = {"paper": "voxels", "fast": "voxels", "accurate": "voxels", "exact": "surfaces"}
+# docs/methods.md#voxel-methods), "surfaces" (analytic walls, docs/methods.md#exact-references) or
+# "fields" (a grey-level volume's iso-surface, docs/methods.md#iso-surfaces).
+METHODS = {"paper": "voxels", "fast": "voxels", "accurate": "voxels", "exact": "surfaces", "iso": "fields"}
 EXITS = ("internal", "air")
 INDEX_RANGE = (1.0, 3.0)  # refractive indices of wall and polymer
 
@@ -24,20 +25,22 @@ def chosen_method(trace: dict, override, fail) -> str:
     ``trace.method`` (default exact); a bad one is refused by name, or through ``fail(keys,
     message)`` (which raises with the file's line)."""
     if override is not None:
-        return check_method(override)
+        return check_method(override, generated=True)
     try:
-        return check_method(trace.get("method", "exact"), "trace.method")
+        return check_method(trace.get("method", "exact"), "trace.method", generated=True)
     except ParameterError as exc:
         fail(("trace", "method"), str(exc))
         raise
 
 
-def check_method(method, field: str = "method", *, kind: str | None = None) -> str:
-    """``method`` if it names a method (of medium ``kind``, when given); a ParameterError naming
-    ``field`` otherwise."""
-    known = [m for m, k in METHODS.items() if kind is None or k == kind]
+def check_method(method, field: str = "method", *, kind: str | None = None, generated: bool = False) -> str:
+    """``method`` if it names a method (of medium ``kind``, when given; one that traces generated
+    wood and lattices, with ``generated``); a ParameterError naming ``field`` otherwise."""
+    known = [m for m, k in METHODS.items() if (kind is None or k == kind) and not (generated and k == "fields")]
     if method not in known:
-        raise ParameterError(f"`{field}` must be one of {', '.join(known)}, got {method!r}")
+        why = (" (iso traces a grey-level scan: twray trace --volume SCAN --method iso)"
+               if generated and METHODS.get(method) == "fields" else "")
+        raise ParameterError(f"`{field}` must be one of {', '.join(known)}, got {method!r}{why}")
     return method
 
 
@@ -152,6 +155,7 @@ PRESETS = {
     "accurate": TraceSettings(method="accurate", voxel=VoxelSettings(sigma_vox=2.0, radius_vox=6.0, newton=3,
                                                                      refit=1, refine=2)),
     "exact": TraceSettings(method="exact"),
+    "iso": TraceSettings(method="iso"),
 }
 
 

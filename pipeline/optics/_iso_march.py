@@ -1,0 +1,258 @@
+"""The iso-surface march (Numba): rays through the level set of a grey-level volume.
+
+The field is the trilinear interpolation of the voxel values between voxel centres (constant
+beyond the outermost centres); the wall (phase 1) is where it exceeds the threshold ``iso``.
+Along a ray inside one cell of the centres' grid the field is a cubic in the distance, so a
+crossing is a root of a cubic: the cell's interval is cut at the roots of the cubic's derivative
+into monotone pieces, and the first piece that goes from the ray's phase into the other holds the
+crossing, which bisection brackets to adjacent floating-point distances.  No crossing inside a
+cell is missed (two in one cell are two pieces), and a tangency (a double root, no change of
+sign) is not a crossing.  The normal is the gradient of the interpolant there.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .interface import REFLECTED, SIDE, TRANSMITTED, TRAPPED, interface_event
+
+_BIG = 1e300
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _corner(vol, i, j, k):
+    """The value of voxel (i, j, k), indices clamped to the volume (constant beyond its centres)."""
+    i = min(max(i, 0), vol.shape[0] - 1)
+    j = min(max(j, 0), vol.shape[1] - 1)
+    k = min(max(k, 0), vol.shape[2] - 1)
+    return vol[i, j, k]
+
+
+@njit(cache=True, nogil=True)
+def _cubic(vol, ci, cj, ck, u0, du, iso, c):
+    """Coefficients c[0..3] of F(s) = field − iso along u0 + s·du (local coordinates of cell
+    (ci, cj, ck), each in [0, 1] inside it); also the eight corner values in c[4:12]."""
+    for q in range(4):
+        c[q] = 0.0
+    for a in range(2):
+        # factor along R: a ? u : 1 − u, as p0 + p1·s
+        pa0 = u0[0] if a else 1.0 - u0[0]
+        pa1 = du[0] if a else -du[0]
+        for b in range(2):
+            pb0 = u0[1] if b else 1.0 - u0[1]
+            pb1 = du[1] if b else -du[1]
+            ab0 = pa0 * pb0
+            ab1 = pa0 * pb1 + pa1 * pb0
+            ab2 = pa1 * pb1
+            for e in range(2):
+                pc0 = u0[2] if e else 1.0 - u0[2]
+                pc1 = du[2] if e else -du[2]
+                f = _corner(vol, ci + a, cj + b, ck + e)
+                c[4 + 4 * a + 2 * b + e] = f
+                c[0] += f * (ab0 * pc0)
+                c[1] += f * (ab0 * pc1 + ab1 * pc0)
+                c[2] += f * (ab1 * pc1 + ab2 * pc0)
+                c[3] += f * (ab2 * pc1)
+    c[0] -= iso
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _eval(c, s):
+    return ((c[3] * s + c[2]) * s + c[1]) * s + c[0]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _other(value, medium):
+    """Whether a value of F = field − iso lies in the phase other than ``medium``."""
+    return value <= 0.0 if medium == 1 else value > 0.0
+
+
+@njit(cache=True, nogil=True)
+def _first_crossing(c, length, medium, at_start, cuts, out):
+    """The first s in [0, length] where F passes from ``medium``'s phase into the other: the
+    bracket (last point in the phase, first point out of it) in out[0:2]; returns False if there
+    is none.  ``at_start``: s = 0 is where the ray left its last crossing (its phase is known
+    there, whatever F's rounding says); elsewhere F out of the phase at s = 0 is a crossing on the
+    cell's face."""
+    f0 = _eval(c, 0.0)
+    if not at_start and _other(f0, medium):
+        out[0] = 0.0
+        out[1] = 0.0
+        return True
+    # Monotone pieces: cut [0, length] at the roots of F' = c1 + 2 c2 s + 3 c3 s².
+    n = 0
+    cuts[n] = 0.0
+    n += 1
+    qa, qb, qc = 3.0 * c[3], 2.0 * c[2], c[1]
+    r1, r2 = _BIG, _BIG
+    if qa != 0.0:
+        disc = qb * qb - 4.0 * qa * qc
+        if disc > 0.0:
+            sq = math.sqrt(disc)
+            t = -0.5 * (qb + (sq if qb >= 0.0 else -sq))
+            r1 = t / qa
+            r2 = qc / t if t != 0.0 else _BIG
+    elif qb != 0.0:
+        r1 = -qc / qb
+    if r1 > r2:
+        r1, r2 = r2, r1
+    if 0.0 < r1 < length:
+        cuts[n] = r1
+        n += 1
+    if 0.0 < r2 < length and r2 != r1:
+        cuts[n] = r2
+        n += 1
+    cuts[n] = length
+    n += 1
+    for p in range(n - 1):
+        lo, hi = cuts[p], cuts[p + 1]
+        if _other(_eval(c, lo), medium) or not _other(_eval(c, hi), medium):
+            continue  # starts out of the phase (only at a segment's start) or never leaves it
+        while True:  # F is monotone on [lo, hi]: one change of phase, bracketed to adjacent doubles
+            mid = 0.5 * (lo + hi)
+            if mid <= lo or mid >= hi:
+                break
+            if _other(_eval(c, mid), medium):
+                hi = mid
+            else:
+                lo = mid
+        out[0] = lo
+        out[1] = hi
+        return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, fresnel, seed,
+          out_pos, out_dir, status, events, path, medium_out, cells, flat):
+    """Trace rays from ``pos`` (N, 3) [µm] (on T = 0, in phase ``medium0``) with unit ``dirs`` through
+    the iso-surface of ``vol`` (R, T, L) with voxels of ``h`` µm, corner at the origin, from T = 0 to
+    T = shape[1]·h; writes where and how each ray leaves, its interfaces and path [µm], the phase
+    it ends in, the cells it crossed and the crossings whose gradient was zero (``flat``: the ray
+    goes on undeflected there)."""
+    nr, nt, nl = vol.shape
+    size = np.array([nr * h, nt * h, nl * h])
+    c = np.empty(12)
+    cuts = np.empty(4)
+    br = np.empty(2)
+    X = np.empty(3)
+    d = np.empty(3)
+    nd = np.empty(3)
+    nrm = np.empty(3)
+    u0 = np.empty(3)
+    du = np.empty(3)
+    for r in range(pos.shape[0]):
+        for q in range(3):
+            X[q] = pos[r, q]
+            d[q] = dirs[r, q]
+        med = medium0[r]
+        ev = 0
+        length = 0.0
+        ncell = 0
+        nflat = 0
+        st = 0
+        while st == 0:
+            # Where the ray leaves the volume along this straight segment, and through which face.
+            t_out = _BIG
+            face = -1
+            for q in range(3):
+                if d[q] > 0.0:
+                    t = (size[q] - X[q]) / d[q]
+                elif d[q] < 0.0:
+                    t = -X[q] / d[q]
+                else:
+                    continue
+                if t < t_out:
+                    t_out, face = t, q
+            t_out = max(t_out, 0.0)
+            # Walk the cells of the centres' grid (cell i spans centres i and i + 1).
+            idx = np.empty(3, np.int64)
+            for q in range(3):
+                idx[q] = int(math.floor(X[q] / h - 0.5))
+            s0 = 0.0
+            at_start = True
+            crossed = False
+            while s0 < t_out:
+                s1 = t_out
+                for q in range(3):
+                    if d[q] > 0.0:
+                        s1 = min(s1, ((idx[q] + 1.5) * h - X[q]) / d[q])
+                    elif d[q] < 0.0:
+                        s1 = min(s1, ((idx[q] + 0.5) * h - X[q]) / d[q])
+                s1 = max(s1, s0)
+                for q in range(3):
+                    u0[q] = (X[q] + s0 * d[q]) / h - 0.5 - idx[q]
+                    du[q] = d[q] / h
+                _cubic(vol, idx[0], idx[1], idx[2], u0, du, iso, c)
+                ncell += 1
+                if _first_crossing(c, s1 - s0, med, at_start, cuts, br):
+                    crossed = True
+                    break
+                at_start = False
+                # Into the next cell: along the axis whose boundary came first (ties: all of them).
+                for q in range(3):
+                    if d[q] > 0.0 and ((idx[q] + 1.5) * h - X[q]) / d[q] <= s1:
+                        idx[q] += 1
+                    elif d[q] < 0.0 and ((idx[q] + 0.5) * h - X[q]) / d[q] <= s1:
+                        idx[q] -= 1
+                s0 = s1
+            if not crossed:
+                length += t_out
+                for q in range(3):
+                    X[q] += t_out * d[q]
+                if face == 1 and d[1] > 0.0:
+                    st = TRANSMITTED
+                elif face == 1:
+                    st = REFLECTED
+                else:
+                    st = SIDE
+                break
+            # The crossing: the gradient of the interpolant at the first point in the other phase.
+            s_in, s_out = s0 + br[0], s0 + br[1]
+            u = np.empty(3)
+            for q in range(3):
+                u[q] = u0[q] + br[1] * du[q]
+            gx = gy = gz = 0.0
+            for a in range(2):
+                for b in range(2):
+                    for e in range(2):
+                        f = c[4 + 4 * a + 2 * b + e]
+                        wa = u[0] if a else 1.0 - u[0]
+                        wb = u[1] if b else 1.0 - u[1]
+                        we = u[2] if e else 1.0 - u[2]
+                        gx += f * (1.0 if a else -1.0) * wb * we
+                        gy += f * wa * (1.0 if b else -1.0) * we
+                        gz += f * wa * wb * (1.0 if e else -1.0)
+            nrm[0], nrm[1], nrm[2] = gx / h, gy / h, gz / h
+            norm = math.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2])
+            if norm == 0.0:
+                nflat += 1
+                new_med = 1 - med
+                for q in range(3):
+                    nd[q] = d[q]
+            else:
+                for q in range(3):
+                    nrm[q] /= norm
+                new_med = interface_event(d, nrm, med, n_wall, n_poly, fresnel, seed, ray_ids[r], ev, nd)
+            ev += 1
+            # Refracted: go on from the first point out of the old phase; reflected: from the last in it.
+            s_at = s_out if new_med != med else s_in
+            length += s_at
+            for q in range(3):
+                X[q] += s_at * d[q]
+                d[q] = nd[q]
+            med = new_med
+            if ev >= max_events:
+                st = TRAPPED
+        for q in range(3):
+            out_pos[r, q] = X[q]
+            out_dir[r, q] = d[q]
+        status[r] = st
+        events[r] = ev
+        path[r] = length
+        medium_out[r] = med
+        cells[r] = ncell
+        flat[r] = nflat
