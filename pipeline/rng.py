@@ -49,6 +49,8 @@ LATTICE_SITE = 50  # jitter of a lattice site, per (i, j)
 NORMAL_NOISE = 51  # perturbation of a normal, per (ray, event)
 # The virtual camera:
 APERTURE = 61  # aperture samples of a pixel
+# Grey-level scans of generated wood:
+SCAN_NOISE = 70  # a scan's detector noise, per voxel (i, j, k)
 
 
 def kinds() -> dict[str, int]:

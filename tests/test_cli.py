@@ -449,7 +449,7 @@ def test_trace_exact_on_generated_wood_reads_no_voxels_and_a_volume_is_refused(t
     code, _, err = run(capsys, "trace", "--volume", str(vol), "--method", "exact", "--rays", "5", "--beam-um", "2",
                        "--delta-ri", "0.01")
     assert code == 2 and len(err.strip().splitlines()) == 1
-    assert "--volume has voxels only: use --method accurate" in err
+    assert "--volume has voxels only: use --method iso" in err and "accurate" in err
 
 
 def test_trace_a_reference_lattice_by_name_with_exact_and_with_a_voxel_method(tmp_path, capsys):

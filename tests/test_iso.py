@@ -5,6 +5,7 @@ level set; and its one-line errors."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -128,3 +129,66 @@ def test_iso_applies_to_grey_volumes_only(tmp_path, capsys):
     assert "`--iso` applies to --method iso" in capsys.readouterr().err
     assert main(["trace", "--volume", str(path), "--method", "iso", "--delta-ri", "0.01", "--beam-um", "50"]) == 2
     assert "`beam_um` must fit the volume" in capsys.readouterr().err
+
+
+def test_a_grey_scan_holds_each_voxels_wall_fraction_whatever_its_slabs(monkeypatch):
+    """A voxel's grey level is the wall fraction of its supersample³ fine voxels of the same wood (the
+    generator's own voxels), the same when generated in other slabs; the noise is per voxel."""
+    from pipeline.microstructure import grey as grey_mod
+    from pipeline.microstructure.model import generate_block
+    from pipeline.params import Grid, build_params
+
+    params = build_params("birch")
+    grid = Grid((16, 12, 10), 0.5, (-4.0, 0.0, -2.5))
+    scan = grey_mod.grey_volume(params, grid, seed=2, supersample=3)
+    fine = generate_block(params, Grid((48, 36, 30), 0.5 / 3, grid.origin_um), (0, 0, 0), (48, 36, 30), seed=2)
+    assert np.array_equal(scan, fine.reshape(16, 3, 12, 3, 10, 3).mean(axis=(1, 3, 5)).astype(np.float32))
+    assert scan.min() == 0 and scan.max() == 1 and len(np.unique(scan)) > 10  # lumens, walls and partial volumes
+    noisy = grey_mod.grey_volume(params, grid, seed=2, supersample=3, noise=0.05, noise_seed=7)
+    monkeypatch.setattr(grey_mod, "SLAB_FINE_VOXELS", 48 * 36 * 27)  # one coarse L layer a slab
+    assert np.array_equal(noisy, grey_mod.grey_volume(params, grid, seed=2, supersample=3, noise=0.05, noise_seed=7))
+    assert 0.04 < float(np.std(noisy - scan)) < 0.06
+    with pytest.raises(ParameterError, match="`supersample` must be an integer in"):
+        grey_mod.grey_volume(params, grid, seed=2, supersample=0)
+
+
+def test_a_generated_grey_scan_is_traced_end_to_end(tmp_path, capsys):
+    scan = tmp_path / "scan.npy"
+    assert main(["generate", "--preset", "birch", "--size-um", "30,20,30", "--voxel-um", "0.5", "--grey",
+                 "--supersample", "2", "--noise", "0.02", "--out", str(scan)]) == 0
+    assert "grey-level scan, shape (60, 40, 60)" in capsys.readouterr().out
+    grey = np.load(scan)
+    assert grey.dtype == np.float32 and grey.shape == (60, 40, 60) and 0.2 < float(grey.mean()) < 0.8
+    assert main(["trace", "--volume", str(scan), "--method", "iso", "--iso", "0.5", "--voxel-um", "0.5",
+                 "--delta-ri", "0.01", "--beam-um", "10", "--rays", "40", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["iso"] == 0.5 and out["iso_from"] == "given" and out["n_rays"] == 40
+    assert main(["generate", "--preset", "birch", "--size-um", "30,20,30", "--noise", "0.1",
+                 "--out", str(tmp_path / "v.zarr")]) == 2
+    assert "`--noise` applies to --grey" in capsys.readouterr().err
+    assert main(["generate", "--preset", "birch", "--size-um", "30,20,30", "--grey", "--out", str(tmp_path / "g.zarr")]) == 2
+    assert "must be a .npy file" in capsys.readouterr().err and not (tmp_path / "g.zarr").exists()
+
+
+def test_a_grey_volume_goes_through_the_same_faces_as_every_medium():
+    """Through `trace`: index-matched, a beam from air leaves into air along its own direction; a ray
+    entering beside the volume leaves through a side; `exact` is refused on it by name."""
+    import dataclasses
+
+    from pipeline.optics.interface import SIDE
+    from pipeline.optics.rays import Beam, square_beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.trace import trace
+
+    rng = np.random.default_rng(4)
+    vol = IsoVolume(rng.random((40, 20, 40)), voxel_um=0.5, iso=0.5)
+    s = dataclasses.replace(settings_for("iso"), exit="air")
+    air = np.array([0.3, 1.0, -0.2]) / np.linalg.norm([0.3, 1.0, -0.2])
+    res = trace(vol, square_beam(30, 4.0, (10.0, 10.0), seed=3, direction=air), Optics(1.5, 1.5, n_outside=1.0), s)
+    assert np.all(res.status == TRANSMITTED) and res.events.sum() > 30
+    np.testing.assert_allclose(res.exit_direction, np.broadcast_to(air, (30, 3)), atol=1e-12)
+    outside = trace(vol, Beam(np.array([[-3.0, 0.0, 5.0]]), np.array([[0.0, 1.0, 0.0]]), np.array([0])),
+                    Optics(1.5, 1.49), settings_for("iso"))
+    assert outside.status[0] == SIDE
+    with pytest.raises(ParameterError, match="`method` 'exact' traces surfaces, but this medium offers fields: use iso"):
+        trace(vol, square_beam(3, 4.0, (10.0, 10.0), seed=3), Optics(1.5, 1.49), settings_for("exact"))

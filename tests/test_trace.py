@@ -169,7 +169,8 @@ def test_trace_to_target_doubles_up_to_the_cap():
 
 
 def test_methods_name_their_medium():
-    assert set(METHODS.values()) == {"voxels", "surfaces"} and METHODS["exact"] == "surfaces"
+    assert set(METHODS.values()) == {"voxels", "surfaces", "fields"} and METHODS["exact"] == "surfaces"
+    assert METHODS["iso"] == "fields"
     assert math.isfinite(traced_voxel_um(0.5, settings_for("exact")))
 
 

@@ -33,6 +33,12 @@ def add_generate(sub):
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
     p.add_argument("--yes", action="store_true", help=YES_HELP)
+    p.add_argument("--grey", action="store_true",
+                   help="write the grey-level scan a µCT would record (.npy, float32: the wall fraction of "
+                        "each voxel) instead of voxels, for --method iso")
+    p.add_argument("--supersample", default=None, help="--grey: fine voxels per voxel edge (default 4)")
+    p.add_argument("--blur-um", default=None, help="--grey: σ of a Gaussian point-spread function [µm] (default 0)")
+    p.add_argument("--noise", default=None, help="--grey: standard deviation of Gaussian noise (default 0)")
     p.set_defaults(func=cmd_generate)
 
 
@@ -57,9 +63,23 @@ def cmd_generate(args) -> int:
         voxel_um=number(args.voxel_um, "voxel_um"),
         chunks=parse_triple(args.chunks, "chunks", positive=True, integer=True),
         seed=integer(args.seed, "seed", 0), out=out_path(args.out), lazy=args.lazy, overwrite=args.overwrite,
-        workers=workers, scheduler=args.scheduler, progress=progress_mode(args.quiet), yes=args.yes)
+        workers=workers, scheduler=args.scheduler, progress=progress_mode(args.quiet), yes=args.yes,
+        grey=_grey_scan(args))
     print(generate_job.describe(generate_job.generate(request)))
     return 0
+
+
+def _grey_scan(args):
+    """``--grey`` and its options as a GreyScan (None without it; its options alone are refused)."""
+    from ..generate_job import GreyScan
+
+    given = [f"--{k.replace('_', '-')}" for k in ("supersample", "blur_um", "noise") if getattr(args, k) is not None]
+    if not args.grey:
+        if given:
+            raise ParameterError(f"`{given[0]}` applies to --grey (a grey-level scan)")
+        return None
+    return GreyScan(integer(args.supersample or "4", "supersample", 1), number(args.blur_um or "0", "blur_um"),
+                    number(args.noise or "0", "noise"))
 
 
 def cmd_slices(args) -> int:
