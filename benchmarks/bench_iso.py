@@ -1,66 +1,91 @@
 """Scans as accurate as the model? A grey-level scan of generated wood (its wall fraction per voxel,
-supersampled; optionally blurred and noisy) traced with `iso`, and binarised at one half with
+supersampled; clean, and blurred with noise) traced with `iso`, and binarised at one half with
 `accurate` and `fast`, beside `exact` on the same wood, beam and rays (docs/methods.md#iso-surfaces).
 
-Prints, per wood and method, FWHM_R, FWHM_L (half-max) and haze, and each method's difference from
-`exact` with the rays lost through the scan's sides; writes them to --out (JSON) when given.
+Per wood and method: FWHM_R, FWHM_L (half-max) and haze. Then, per scan and method, the difference
+from `exact` (relative for the widths, in points for haze), its mean over the woods and a 95 %
+t interval over them: each wood's difference carries that wood's ray sampling too, so the interval
+holds both. Woods are traced in parallel processes. Writes JSON with --out.
 
-    python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxel-um 0.5 --woods 2
+    python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxel-um 0.5 --woods 5 --rays 1000
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from pipeline.microstructure.grey import grey_volume
-from pipeline.optics.iso import IsoVolume
-from pipeline.optics.media import wood_medium
-from pipeline.optics.rays import square_beam
-from pipeline.optics.settings import Optics, settings_for
-from pipeline.optics.sources import ArraySource
-from pipeline.optics.trace import trace
-from pipeline.params import Grid, build_params
-from pipeline.summary import summarize
+SCANS = {"clean": (0.0, 0.0), "blur 0.3 µm + noise 0.02": (0.3, 0.02)}
+METHODS = ("iso", "accurate", "fast")
 
 
-def one_wood(params, seed, args) -> list[dict]:
-    t_um = 1000.0 * args.thickness_mm
-    side = args.side_um
-    n = int(round(side / args.voxel_um))
-    nt = int(round(t_um / args.voxel_um))
-    grid = Grid((n, nt, n), args.voxel_um, (-n * args.voxel_um / 2, 0.0, -n * args.voxel_um / 2))
+def one_wood(seed: int, args) -> list[dict]:
+    from pipeline.microstructure.grey import degrade, grey_volume
+    from pipeline.optics.iso import IsoVolume
+    from pipeline.optics.media import wood_medium
+    from pipeline.optics.rays import square_beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.sources import ArraySource
+    from pipeline.optics.trace import trace
+    from pipeline.params import Grid, build_params
+    from pipeline.summary import summarize
+
+    params = build_params(args.preset)
+    n = int(round(args.side_um / args.voxel_um))
+    nt = int(round(1000.0 * args.thickness_mm / args.voxel_um))
+    h = args.voxel_um
+    grid = Grid((n, nt, n), h, (-n * h / 2, 0.0, -n * h / 2))  # the wood's R, L origin at the scan's centre
     t0 = time.perf_counter()
-    grey = grey_volume(params, grid, seed=seed, supersample=args.supersample, blur_um=args.blur_um,
-                       noise=args.noise, noise_seed=seed)
+    clean = grey_volume(params, grid, seed=seed, supersample=args.supersample)
     t_scan = time.perf_counter() - t0
     optics = Optics.of_delta(1.49, args.delta_ri, seed=seed)
-    half = n * args.voxel_um / 2
     rows = []
-    cases = [("exact", None), ("iso", None), ("accurate", "binary"), ("fast", "binary")]
-    for method, _ in cases:
+
+    def run(scan_name, method, medium, centre):
         settings = settings_for(method, **({"refine": 1} if method in ("accurate", "fast") else {}))
-        if method == "exact":
-            medium, centre = wood_medium(params, seed=seed, thickness_um=nt * args.voxel_um, voxel_um=args.voxel_um,
-                                         settings=settings), (0.0, 0.0)
-        elif method == "iso":
-            medium, centre = IsoVolume(grey, voxel_um=args.voxel_um, iso=0.5), (half, half)
-        else:
-            medium, centre = ArraySource((grey > 0.5).astype(np.uint8), voxel_um=args.voxel_um), (half, half)
-        beam = square_beam(args.rays, args.beam_um, centre, seed=seed)
         c0 = time.process_time()
-        r = trace(medium, beam, optics, settings)
+        r = trace(medium, square_beam(args.rays, args.beam_um, centre, seed=seed), optics, settings)
         cpu = time.process_time() - c0
         s = summarize(r, seed=seed, n_boot=0)
-        interfaces = int(r.events.sum())
-        rows.append({"seed": seed, "method": method, "fwhm_r": s["fwhm_r_deg"], "fwhm_l": s["fwhm_l_deg"],
-                     "haze": s["haze"], "transmitted": int(s["n_transmitted"]), "rays": args.rays,
-                     "interfaces": interfaces, "cpu_s": cpu, "us_per_interface": 1e6 * cpu / max(interfaces, 1),
-                     "scan_s": t_scan})
+        rows.append({"seed": seed, "scan": scan_name, "method": method, "fwhm_r": s["fwhm_r_deg"],
+                     "fwhm_l": s["fwhm_l_deg"], "haze": s["haze"], "transmitted": int(s["n_transmitted"]),
+                     "interfaces": int(r.events.sum()), "cpu_s": cpu, "scan_s": t_scan})
+
+    exact = settings_for("exact")
+    run("-", "exact", wood_medium(params, seed=seed, thickness_um=nt * h, voxel_um=h, settings=exact), (0.0, 0.0))
+    for scan_name, (blur, noise) in SCANS.items():
+        grey = degrade(clean, h, blur_um=blur, noise=noise, noise_seed=seed)
+        for method in METHODS:
+            medium = (IsoVolume(grey, voxel_um=h, iso=0.5) if method == "iso"
+                      else ArraySource((grey > 0.5).astype(np.uint8), voxel_um=h))
+            run(scan_name, method, medium, (n * h / 2, n * h / 2))
     return rows
+
+
+def table(rows: list[dict]) -> list[dict]:
+    """Per scan and method: the mean difference from exact over the woods and its 95 % t interval."""
+    from scipy.special import stdtrit
+
+    ex = {r["seed"]: r for r in rows if r["method"] == "exact"}
+    out = []
+    for scan in SCANS:
+        for method in METHODS:
+            mine = [r for r in rows if r["scan"] == scan and r["method"] == method]
+            entry = {"scan": scan, "method": method, "woods": len(mine)}
+            for q, rel in (("fwhm_r", True), ("fwhm_l", True), ("haze", False)):
+                d = np.array([(r[q] / ex[r["seed"]][q] - 1.0) * 100 if rel else (r[q] - ex[r["seed"]][q]) * 100
+                              for r in mine])
+                half = float(stdtrit(len(d) - 1, 0.975)) * float(np.std(d, ddof=1)) / math.sqrt(len(d))
+                entry[q] = [float(d.mean()), half]
+            entry["us_per_interface"] = 1e6 * sum(r["cpu_s"] for r in mine) / max(1, sum(r["interfaces"] for r in mine))
+            entry["lost"] = sum(r["rays"] - r["transmitted"] for r in mine)
+            out.append(entry)
+    return out
 
 
 def main():
@@ -69,29 +94,34 @@ def main():
     p.add_argument("--thickness-mm", type=float, default=0.25)
     p.add_argument("--voxel-um", type=float, default=0.5)
     p.add_argument("--supersample", type=int, default=4)
-    p.add_argument("--blur-um", type=float, default=0.0)
-    p.add_argument("--noise", type=float, default=0.0)
     p.add_argument("--delta-ri", type=float, default=0.01)
     p.add_argument("--side-um", type=float, default=160.0, help="the scan's R and L extent [µm]")
     p.add_argument("--beam-um", type=float, default=40.0)
-    p.add_argument("--rays", type=int, default=300)
-    p.add_argument("--woods", type=int, default=2)
+    p.add_argument("--rays", type=int, default=1000)
+    p.add_argument("--woods", type=int, default=5)
+    p.add_argument("--processes", type=int, default=2)
     p.add_argument("--out", default=None)
     args = p.parse_args()
-    params = build_params(args.preset)
-    rows = [row for seed in range(1, args.woods + 1) for row in one_wood(params, seed, args)]
-    ex = {r["seed"]: r for r in rows if r["method"] == "exact"}
-    print(f"{args.preset} {args.thickness_mm} mm, scan {args.voxel_um} µm (supersample {args.supersample}, blur "
-          f"{args.blur_um} µm, noise {args.noise}), ΔRI {args.delta_ri}, {args.rays} rays a wood")
+    with ProcessPoolExecutor(args.processes) as pool:
+        rows = [r for part in pool.map(one_wood, range(1, args.woods + 1), [args] * args.woods) for r in part]
     for r in rows:
-        e = ex[r["seed"]]
-        print(f"  wood {r['seed']} {r['method']:8s} FWHM_R {r['fwhm_r']:7.3f}° ({100 * (r['fwhm_r'] / e['fwhm_r'] - 1):+6.1f} %)"
-              f"  FWHM_L {r['fwhm_l']:6.3f}° ({100 * (r['fwhm_l'] / e['fwhm_l'] - 1):+6.1f} %)"
-              f"  haze {100 * r['haze']:5.1f} % ({100 * (r['haze'] - e['haze']):+5.1f} pt)"
-              f"  transmitted {r['transmitted']}/{r['rays']}  {r['us_per_interface']:.2f} µs/interface")
+        r["rays"] = args.rays
+    summary = table(rows)
+    print(f"{args.preset} {args.thickness_mm} mm, scans at {args.voxel_um} µm (supersample {args.supersample}), "
+          f"ΔRI {args.delta_ri}, {args.woods} woods x {args.rays} rays, beam {args.beam_um} µm in a "
+          f"{args.side_um} µm scan; difference from exact, mean over woods ± 95 % t interval")
+    print("| scan | method | FWHM_R [%] | FWHM_L [%] | haze [points] | µs an interface | rays lost at the sides |")
+    print("|---|---|---|---|---|---|---|")
+    for e in summary:
+        print(f"| {e['scan']} | {e['method']} | {e['fwhm_r'][0]:+.1f} ± {e['fwhm_r'][1]:.1f} | "
+              f"{e['fwhm_l'][0]:+.1f} ± {e['fwhm_l'][1]:.1f} | {e['haze'][0]:+.2f} ± {e['haze'][1]:.2f} | "
+              f"{e['us_per_interface']:.2f} | {e['lost']} |")
+    ex = [r for r in rows if r["method"] == "exact"]
+    print(f"exact: {1e6 * sum(r['cpu_s'] for r in ex) / sum(r['interfaces'] for r in ex):.2f} µs an interface; "
+          f"a clean scan took {np.mean([r['scan_s'] for r in ex]):.0f} s a wood to make")
     if args.out:
         with open(args.out, "w") as f:
-            json.dump({"args": vars(args), "rows": rows}, f, indent=1)
+            json.dump({"args": vars(args), "rows": rows, "table": summary}, f, indent=1)
 
 
 if __name__ == "__main__":

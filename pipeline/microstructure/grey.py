@@ -29,9 +29,7 @@ def grey_volume(params: WoodParams, grid: Grid, *, seed: int, supersample: int =
     noise."""
     if isinstance(supersample, bool) or not isinstance(supersample, int) or not 1 <= supersample <= 16:
         raise ParameterError(f"`supersample` must be an integer in [1, 16], got {supersample!r}")
-    for name, v in (("blur_um", blur_um), ("noise", noise)):
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-            raise ParameterError(f"`{name}` must be a number >= 0, got {name}={v!r}")
+    _check_degradation(blur_um, noise)  # before the generation, not after
     s = supersample
     fine = Grid(tuple(n * s for n in grid.shape), grid.voxel_um / s, grid.origin_um)
     check_voxel(fine.voxel_um, params)
@@ -42,13 +40,28 @@ def grey_volume(params: WoodParams, grid: Grid, *, seed: int, supersample: int =
         k1 = min(nl, k0 + per_l)
         block = generate_block(params, fine, (0, 0, k0 * s), (nr * s, nt * s, (k1 - k0) * s), seed=seed)
         out[:, :, k0:k1] = block.reshape(nr, s, nt, s, k1 - k0, s).mean(axis=(1, 3, 5), dtype=np.float64)
+    return degrade(out, grid.voxel_um, blur_um=blur_um, noise=noise, noise_seed=noise_seed)
+
+
+def degrade(scan: np.ndarray, voxel_um: float, *, blur_um: float = 0.0, noise: float = 0.0,
+            noise_seed: int = 0) -> np.ndarray:
+    """``scan`` as a scanner records it: blurred by a Gaussian of σ ``blur_um``, then with Gaussian noise
+    of standard deviation ``noise`` from each voxel's own stream (a new array; ``scan`` is kept)."""
+    _check_degradation(blur_um, noise)
+    out = np.array(scan, np.float32, copy=True)
     if blur_um > 0:
         from scipy.ndimage import gaussian_filter
 
-        out = gaussian_filter(out, sigma=blur_um / grid.voxel_um, mode="nearest").astype(np.float32)
+        out = gaussian_filter(out, sigma=blur_um / voxel_um, mode="nearest").astype(np.float32)
     if noise > 0:
         _add_noise(out, float(noise), np.uint64(noise_seed))
     return out
+
+
+def _check_degradation(blur_um, noise) -> None:
+    for name, v in (("blur_um", blur_um), ("noise", noise)):
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            raise ParameterError(f"`{name}` must be a number >= 0, got {name}={v!r}")
 
 
 @njit(cache=True, nogil=True)
