@@ -192,3 +192,22 @@ def test_a_grey_volume_goes_through_the_same_faces_as_every_medium():
     assert outside.status[0] == SIDE
     with pytest.raises(ParameterError, match="`method` 'exact' traces surfaces, but this medium offers fields: use iso"):
         trace(vol, square_beam(3, 4.0, (10.0, 10.0), seed=3), Optics(1.5, 1.49), settings_for("exact"))
+
+
+def test_a_ray_that_starts_on_a_cell_face_does_not_cross_again_there():
+    """A clean scan's wall fractions are multiples of 1/64, so the threshold ½ lies exactly on many
+    voxel centres, that is on faces of the cells the march walks. There two cells' cubics can round
+    F to opposite sides: a ray of this birch scan (found in bench_iso) met one, refracted, and its
+    restart in the neighbouring cell counted the same face again, back and forth, 2000 times
+    (trapped). Until a ray has moved, its phase is the one it left the crossing with."""
+    from pipeline.microstructure.grey import grey_volume
+    from pipeline.optics.rays import Beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.trace import trace
+    from pipeline.params import Grid, build_params
+
+    # Voxels R 140-199, L 110-149 of a 160 µm birch scan centred on the wood's origin.
+    scan = grey_volume(build_params("birch"), Grid((60, 500, 40), 0.5, (-10.0, 0.0, -25.0)), seed=1, supersample=4)
+    ray = Beam(np.array([[19.67782767, 0.0, 10.4565875]]), np.array([[0.0, 1.0, 0.0]]), np.array([88]))
+    r = trace(IsoVolume(scan, voxel_um=0.5, iso=0.5), ray, Optics.of_delta(1.49, 0.01, seed=1), settings_for("iso"))
+    assert r.status[0] == TRANSMITTED and r.events[0] < 100

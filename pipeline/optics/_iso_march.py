@@ -173,9 +173,12 @@ def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, 
             for q in range(3):
                 idx[q] = int(math.floor(X[q] / h - 0.5))
             s0 = 0.0
-            at_start = True
             crossed = False
             while s0 < t_out:
+                # Until the ray has moved, its phase is the one it left its last crossing with: the
+                # cells that meet at its starting point (on a face, an edge or a corner) may round F
+                # to the other side there, which is no new crossing.
+                at_start = s0 <= 0.0
                 s1 = t_out
                 for q in range(3):
                     if d[q] > 0.0:
@@ -191,7 +194,6 @@ def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, 
                 if _first_crossing(c, s1 - s0, med, at_start, cuts, br):
                     crossed = True
                     break
-                at_start = False
                 # Into the next cell: along the axis whose boundary came first (ties: all of them).
                 for q in range(3):
                     if d[q] > 0.0 and ((idx[q] + 1.5) * h - X[q]) / d[q] <= s1:
