@@ -141,7 +141,7 @@ def markdown(a: dict, rows: list[dict], summary: list[dict], seconds: float) -> 
         "trace it binarised at ½ on its own voxels. Each cell: the difference from `exact` on the same wood, beam and "
         "rays (relative for the half-max widths, in points for haze), its mean over the woods ± a 95 % t interval "
         "over them (each wood's difference carries its own ray sampling, so the interval holds both).", "",
-        "| scan | method | FWHM_R [%] | FWHM_L [%] | haze [points] | µs an interface | rays lost at the scan's sides |",
+        "| scan | method | FWHM_R [%] | FWHM_L [%] | haze [points] | µs an interface | rays not transmitted (sides, reflected, trapped) |",
         "|---|---|---|---|---|---|---|"]
     for e in summary:
         lines.append(f"| {e['scan']} | {e['method']} | {e['fwhm_r'][0]:+.1f} ± {e['fwhm_r'][1]:.1f} | "
