@@ -138,7 +138,7 @@ bench-accuracy: install
 	$(BIN)/python benchmarks/bench_accuracy.py --out results/accuracy.json
 
 ## A grey-level scan traced with iso, and binarised with accurate and fast, beside exact on the same wood
-## (birch 0.25 mm, 5 woods x 1000 rays, clean and blurred+noisy 0.5 µm scans) -> results/iso.json and results/iso.md.
+## (birch 0.25 mm, 5 woods x 1000 rays, clean and blurred+noisy scans at 1 and 0.5 µm) -> results/iso.json and results/iso.md (about 7 min).
 bench-iso: install
 	$(BIN)/python benchmarks/bench_iso.py --out results/iso.json --md results/iso.md
 
