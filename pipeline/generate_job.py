@@ -50,13 +50,15 @@ class GreyScan:
 
 @dataclass(frozen=True)
 class Generated:
-    """What was written: the store, its volume, how many chunks were generated and in how long."""
+    """What was written: the store and its volume (a WoodVolume; with ``grey``, the scan's array), how
+    many chunks were generated and in how long."""
 
     out: Path
     volume: object
     chunks_generated: int
     seconds: float
     lazy: bool
+    grey: bool = False
 
 
 def estimate(voxels: float, voxel_um: float, params, *, workers) -> limits.Estimate:
@@ -132,7 +134,7 @@ def _grey(r: GenerateRequest, grid, out: Path) -> Generated:
             np.save(f, scan)
 
     atomic_write(out, write)
-    return Generated(out, scan, 0, time.perf_counter() - t0, lazy=False)
+    return Generated(out, scan, 0, time.perf_counter() - t0, lazy=False, grey=True)
 
 
 def materialise(out, *, workers: int | None = None, scheduler: str | None = None, progress: str = "auto",
@@ -158,7 +160,7 @@ def describe(g: Generated, *, materialised: bool = False) -> str:
     from .microstructure.volume import WoodVolume
 
     vol = g.volume
-    if not hasattr(vol, "grid"):  # a grey-level scan (an array)
+    if g.grey:
         return (f"{g.out}: grey-level scan, shape {vol.shape} (R, T, L), wall fraction {float(vol.mean()):.3f} "
                 f"(grey levels {float(vol.min()):.3g} to {float(vol.max()):.3g}), in {g.seconds:.1f} s")
     if materialised:
