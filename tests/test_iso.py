@@ -211,3 +211,68 @@ def test_a_ray_that_starts_on_a_cell_face_does_not_cross_again_there():
     ray = Beam(np.array([[19.67782767, 0.0, 10.4565875]]), np.array([[0.0, 1.0, 0.0]]), np.array([88]))
     r = trace(IsoVolume(scan, voxel_um=0.5, iso=0.5), ray, Optics.of_delta(1.49, 0.01, seed=1), settings_for("iso"))
     assert r.status[0] == TRANSMITTED and r.events[0] < 100
+
+
+def test_a_volume_read_in_blocks_as_rays_reach_them_gives_the_same_rays_bit_for_bit(tmp_path):
+    """Rays stopped at a block's edge and resumed once it is read go on exactly as through the whole
+    volume in one block: the same rays whatever the block size and however few blocks the pool
+    holds; a narrow beam through a Zarr array reads only the blocks around its path."""
+    import zarr
+
+    from pipeline.optics.rays import square_beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.trace import trace
+
+    rng = np.random.default_rng(11)
+    # Smooth random walls (a sum of a few plane waves): many crossings, oblique normals.
+    i, j, k = np.meshgrid(*[np.arange(n) for n in (48, 40, 48)], indexing="ij")
+    grey = sum(np.cos(0.3 * (a * i + b * j + c * k) + p) for a, b, c, p in rng.normal(0, 1, (6, 4)))
+    beam = square_beam(80, 6.0, (12.0, 12.0), seed=2, direction=(0.2, 1.0, -0.1))
+    optics = Optics(1.5, 1.49)
+    whole = trace(IsoVolume(grey, voxel_um=0.5, iso=0.1, block=64), beam, optics, settings_for("iso"))
+    assert whole.events.sum() > 400
+    store = zarr.create_array(tmp_path / "grey.zarr", shape=grey.shape, chunks=(8, 8, 8), dtype="f8")
+    store[...] = grey
+    for block, memory in ((5, 10 ** 9), (5, 4 * 6 ** 3 * 8), (8, 10 ** 9)):
+        vol = IsoVolume(zarr.open_array(tmp_path / "grey.zarr", mode="r"), voxel_um=0.5, iso=0.1, block=block,
+                        memory_bytes=memory)
+        part = trace(vol, beam, optics, settings_for("iso"))
+        for name in ("position", "exit_direction", "status", "events", "path"):
+            np.testing.assert_array_equal(getattr(part, name), getattr(whole, name), err_msg=f"{name}, block {block}")
+        every = math.prod(-(-n // block) for n in grey.shape)
+        if memory > 10 ** 6:
+            assert vol.blocks_read < every / 2, (vol.blocks_read, every)
+
+
+def test_a_non_finite_grey_level_is_named_when_its_block_is_read(monkeypatch):
+    """A large volume's threshold comes from every k-th L slice; a bad voxel elsewhere is found, and
+    named, when a ray reaches its block."""
+    from pipeline.optics import iso
+    from pipeline.optics.rays import square_beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.trace import trace
+
+    grey = np.random.default_rng(1).random((40, 20, 40))
+    grey[30, 5, 35] = np.inf
+    monkeypatch.setattr(iso, "SAMPLE_VOXELS", grey.size // 4)
+    vol = IsoVolume(grey, voxel_um=1.0, block=8)
+    assert vol.iso_sample == "every 4th L slice" and 0.3 < vol.iso < 0.7
+    with pytest.raises(ParameterError) as err:
+        trace(vol, square_beam(5, 4.0, (30.0, 35.0), seed=1), Optics(1.5, 1.49), settings_for("iso"))
+    assert str(err.value) == "`volume` must hold finite grey levels, got 1 that are not (the first at voxel (30, 5, 35))"
+
+
+@pytest.mark.parametrize("blur, noise", [(0.0, 0.0), (0.3, 0.02)])
+def test_a_lazy_grey_scan_is_the_whole_scan_part_by_part(blur, noise):
+    """Each part of a LazyGreyScan, generated when read (a blurred one with its kernel's halo, its
+    noise keyed by the voxel's index in the whole scan), is bit for bit that part of grey_volume's
+    scan, and only the tiles a read touches are generated."""
+    from pipeline.microstructure import grey
+    from pipeline.params import Grid, build_params
+
+    p, g = build_params("birch"), Grid((70, 40, 66), 0.5, (-10.0, 0.0, -12.0))
+    whole = grey.grey_volume(p, g, seed=3, supersample=2, blur_um=blur, noise=noise, noise_seed=5)
+    lazy = grey.LazyGreyScan(p, g, seed=3, supersample=2, blur_um=blur, noise=noise, noise_seed=5)
+    np.testing.assert_array_equal(lazy[5:30, 3:20, 40:66], whole[5:30, 3:20, 40:66])
+    assert lazy.tiles_generated == 2  # tiles (0, 0, 1) and (0, 0, 2) of 32³ voxels
+    np.testing.assert_array_equal(lazy[:, :, ::3], whole[:, :, ::3])

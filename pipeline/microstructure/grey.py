@@ -6,6 +6,10 @@ generating the wood on voxels ``supersample`` times smaller and averaging them; 
 scanner's, optionally a Gaussian point-spread function of ``blur_um`` (σ) and Gaussian noise of
 ``noise`` (standard deviation, in the fraction's units) drawn from the counter-based stream of
 each voxel, so a scan is the same whatever its chunking.
+
+:class:`LazyGreyScan` is the same scan as an array read in parts: each part is generated (with the
+halo its blur needs) when it is first read, bit for bit the part of :func:`grey_volume`'s scan, so
+that a scan millimetres wide costs only what a trace reads of it.
 """
 
 from __future__ import annotations
@@ -15,11 +19,16 @@ import math
 import numpy as np
 from numba import njit
 
+from collections import OrderedDict
+
 from ..params import Grid, ParameterError, WoodParams, check_voxel
 from ..rng import SCAN_NOISE, normal
 from .model import generate_block
 
 SLAB_FINE_VOXELS = 32e6  # fine voxels generated at a time (memory: one byte each)
+TILE = 32  # LazyGreyScan generates tiles of TILE³ voxels
+TILE_CACHE_BYTES = 256 * 2 ** 20  # the tiles a LazyGreyScan keeps
+TRUNCATE = 4.0  # the blur's kernel reaches TRUNCATE σ (scipy's default)
 
 
 def grey_volume(params: WoodParams, grid: Grid, *, seed: int, supersample: int = 4, blur_um: float = 0.0,
@@ -27,20 +36,33 @@ def grey_volume(params: WoodParams, grid: Grid, *, seed: int, supersample: int =
     """The grey-level scan (float32, R × T × L, the wall fraction of each voxel of ``grid``) of the
     wood of ``params`` and ``seed``: ``supersample``³ fine voxels a voxel, then the blur and the
     noise."""
+    fine = _checked(params, grid, supersample, blur_um, noise)  # before the generation, not after
+    out = _clean(params, fine, supersample, seed, (0, 0, 0), grid.shape)
+    return degrade(out, grid.voxel_um, blur_um=blur_um, noise=noise, noise_seed=noise_seed)
+
+
+def _checked(params, grid, supersample, blur_um, noise) -> Grid:
+    """The fine grid of a scan of ``grid``, after checking the scan's options."""
     if isinstance(supersample, bool) or not isinstance(supersample, int) or not 1 <= supersample <= 16:
         raise ParameterError(f"`supersample` must be an integer in [1, 16], got {supersample!r}")
-    _check_degradation(blur_um, noise)  # before the generation, not after
-    s = supersample
-    fine = Grid(tuple(n * s for n in grid.shape), grid.voxel_um / s, grid.origin_um)
+    _check_degradation(blur_um, noise)
+    fine = Grid(tuple(n * supersample for n in grid.shape), grid.voxel_um / supersample, grid.origin_um)
     check_voxel(fine.voxel_um, params)
-    nr, nt, nl = grid.shape
-    out = np.empty(grid.shape, np.float32)
-    per_l = max(1, int(SLAB_FINE_VOXELS // (nr * nt * s ** 3)))  # coarse L layers a slab
-    for k0 in range(0, nl, per_l):
-        k1 = min(nl, k0 + per_l)
-        block = generate_block(params, fine, (0, 0, k0 * s), (nr * s, nt * s, (k1 - k0) * s), seed=seed)
-        out[:, :, k0:k1] = block.reshape(nr, s, nt, s, k1 - k0, s).mean(axis=(1, 3, 5), dtype=np.float64)
-    return degrade(out, grid.voxel_um, blur_um=blur_um, noise=noise, noise_seed=noise_seed)
+    return fine
+
+
+def _clean(params, fine: Grid, s: int, seed: int, first, shape) -> np.ndarray:
+    """The wall fractions of the voxels ``first`` + [0, ``shape``) of the scan whose fine grid is
+    ``fine`` (``s``³ fine voxels a voxel), generated in slabs along L."""
+    nr, nt, nl = shape
+    i0, j0, k0 = first
+    out = np.empty(shape, np.float32)
+    per_l = max(1, int(SLAB_FINE_VOXELS // (nr * nt * s ** 3)))  # voxel layers along L a slab
+    for a in range(0, nl, per_l):
+        b = min(nl, a + per_l)
+        block = generate_block(params, fine, (i0 * s, j0 * s, (k0 + a) * s), (nr * s, nt * s, (b - a) * s), seed=seed)
+        out[:, :, a:b] = block.reshape(nr, s, nt, s, b - a, s).mean(axis=(1, 3, 5), dtype=np.float64)
+    return out
 
 
 def degrade(scan: np.ndarray, voxel_um: float, *, blur_um: float = 0.0, noise: float = 0.0,
@@ -54,7 +76,7 @@ def degrade(scan: np.ndarray, voxel_um: float, *, blur_um: float = 0.0, noise: f
 
         out = gaussian_filter(out, sigma=blur_um / voxel_um, mode="nearest").astype(np.float32)
     if noise > 0:
-        _add_noise(out, float(noise), np.uint64(noise_seed))
+        _add_noise(out, float(noise), np.uint64(noise_seed), 0, 0, 0)
     return out
 
 
@@ -65,8 +87,78 @@ def _check_degradation(blur_um, noise) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _add_noise(vol, sigma, seed):
+def _add_noise(vol, sigma, seed, i0, j0, k0):
+    """Each voxel's noise from its own stream, keyed by its index in the whole scan (``vol`` starts
+    at voxel (i0, j0, k0))."""
     for i in range(vol.shape[0]):
         for j in range(vol.shape[1]):
             for k in range(vol.shape[2]):
-                vol[i, j, k] += sigma * normal(seed, SCAN_NOISE, i, j, k)
+                vol[i, j, k] += sigma * normal(seed, SCAN_NOISE, i0 + i, j0 + j, k0 + k)
+
+
+class LazyGreyScan:
+    """:func:`grey_volume`'s scan of ``grid`` as an array whose parts are generated when read
+    (``scan[i0:i1, j0:j1, k0:k1]``, float32), in tiles of :data:`TILE`³ voxels kept up to
+    :data:`TILE_CACHE_BYTES`; each part is bit for bit the same part of the whole scan (a blurred
+    tile is generated with the halo its kernel reaches).  ``tiles_generated`` counts the tiles made."""
+
+    dtype = np.dtype(np.float32)
+
+    def __init__(self, params: WoodParams, grid: Grid, *, seed: int, supersample: int = 4, blur_um: float = 0.0,
+                 noise: float = 0.0, noise_seed: int = 0):
+        self.fine = _checked(params, grid, supersample, blur_um, noise)
+        self.params, self.grid, self.seed, self.s = params, grid, seed, supersample
+        self.blur_um, self.noise, self.noise_seed = float(blur_um), float(noise), noise_seed
+        self.shape = tuple(int(n) for n in grid.shape)
+        self.ndim = 3
+        self.tiles: OrderedDict = OrderedDict()
+        self.tiles_generated = 0
+
+    def _tile(self, key) -> np.ndarray:
+        if key in self.tiles:
+            self.tiles.move_to_end(key)
+            return self.tiles[key]
+        lo = [k * TILE for k in key]
+        hi = [min(a + TILE, n) for a, n in zip(lo, self.shape)]
+        # The blur's halo: what its kernel reaches (scipy's radius), inside the scan.
+        halo = int(TRUNCATE * self.blur_um / self.grid.voxel_um + 0.5) if self.blur_um > 0 else 0
+        glo = [max(a - halo, 0) for a in lo]
+        ghi = [min(b + halo, n) for b, n in zip(hi, self.shape)]
+        part = _clean(self.params, self.fine, self.s, self.seed, glo, tuple(b - a for a, b in zip(glo, ghi)))
+        if self.blur_um > 0:
+            from scipy.ndimage import gaussian_filter
+
+            part = gaussian_filter(part, sigma=self.blur_um / self.grid.voxel_um, mode="nearest",
+                                   truncate=TRUNCATE).astype(np.float32)
+        part = np.ascontiguousarray(part[tuple(slice(a - g, b - g) for a, b, g in zip(lo, hi, glo))])
+        if self.noise > 0:
+            _add_noise(part, self.noise, np.uint64(self.noise_seed), *lo)
+        self.tiles[key] = part
+        self.tiles_generated += 1
+        while len(self.tiles) * TILE ** 3 * 4 > TILE_CACHE_BYTES:
+            self.tiles.popitem(last=False)
+        return part
+
+    def __getitem__(self, region) -> np.ndarray:
+        region = region if isinstance(region, tuple) else (region,)
+        region = region + (slice(None),) * (3 - len(region))
+        spans = [sl.indices(n) for sl, n in zip(region, self.shape)]
+        lo = [a for a, _, _ in spans]
+        hi = [max(a, b) for a, b, _ in spans]
+        out = np.empty([b - a for a, b in zip(lo, hi)], np.float32)
+        for ti in range(lo[0] // TILE, -(-hi[0] // TILE)):
+            for tj in range(lo[1] // TILE, -(-hi[1] // TILE)):
+                for tk in range(lo[2] // TILE, -(-hi[2] // TILE)):
+                    t = self._tile((ti, tj, tk))
+                    a = [max(l, q * TILE) for l, q in zip(lo, (ti, tj, tk))]
+                    b = [min(h, q * TILE + TILE) for h, q in zip(hi, (ti, tj, tk))]
+                    out[tuple(slice(x - l, y - l) for x, y, l in zip(a, b, lo))] = \
+                        t[tuple(slice(x - q * TILE, y - q * TILE) for x, y, q in zip(a, b, (ti, tj, tk)))]
+        return out[tuple(slice(None, None, st) for _, _, st in spans)]
+
+    def sample(self) -> np.ndarray:
+        """Grey levels to choose and check a threshold from: a box of at most 64 × 128 × 64 voxels at
+        the middle of the R-L face (reading the whole scan would generate all of it)."""
+        box = [min(n, m) for n, m in zip(self.shape, (64, 128, 64))]
+        lo = [(n - b) // 2 if q != 1 else 0 for q, (n, b) in enumerate(zip(self.shape, box))]
+        return self[tuple(slice(a, a + b) for a, b in zip(lo, box))]

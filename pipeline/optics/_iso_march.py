@@ -8,6 +8,11 @@ into monotone pieces, and the first piece that goes from the ray's phase into th
 crossing, which bisection brackets to adjacent floating-point distances.  No crossing inside a
 cell is missed (two in one cell are two pieces), and a tangency (a double root, no change of
 sign) is not a crossing.  The normal is the gradient of the interpolant there.
+
+The volume is read in blocks of B³ cells (B + 1 voxels a side: a cell's eight corners lie in one
+block) held in a pool; a ray that reaches a block not in the pool stops with the status
+NEEDS_CHUNK and the block it wants, its whole state kept, and goes on bit for bit where it stopped
+once its caller has read that block (:class:`pipeline.optics.iso.IsoVolume`).
 """
 
 from __future__ import annotations
@@ -17,40 +22,40 @@ import math
 import numpy as np
 from numba import njit
 
-from .interface import REFLECTED, SIDE, TRANSMITTED, TRAPPED, interface_event
+from .interface import NEEDS_CHUNK, REFLECTED, SIDE, TRANSMITTED, TRAPPED, interface_event
 
 _BIG = 1e300
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _corner(vol, i, j, k):
-    """The value of voxel (i, j, k), indices clamped to the volume (constant beyond its centres)."""
-    i = min(max(i, 0), vol.shape[0] - 1)
-    j = min(max(j, 0), vol.shape[1] - 1)
-    k = min(max(k, 0), vol.shape[2] - 1)
-    return vol[i, j, k]
+def _clamp(i, n):
+    return min(max(i, 0), n - 1)
 
 
 @njit(cache=True, nogil=True)
-def _cubic(vol, ci, cj, ck, u0, du, iso, c):
+def _cubic(pool, slot, base, dims, ci, cj, ck, u0, du, iso, c):
     """Coefficients c[0..3] of F(s) = field − iso along u0 + s·du (local coordinates of cell
-    (ci, cj, ck), each in [0, 1] inside it); also the eight corner values in c[4:12]."""
+    (ci, cj, ck), each in [0, 1] inside it); also the eight corner values in c[4:12].  The corners,
+    their indices clamped to the volume (constant beyond its centres), are read from the block in
+    ``pool[slot]`` whose first voxel is ``base``."""
     for q in range(4):
         c[q] = 0.0
     for a in range(2):
         # factor along R: a ? u : 1 − u, as p0 + p1·s
         pa0 = u0[0] if a else 1.0 - u0[0]
         pa1 = du[0] if a else -du[0]
+        ia = _clamp(ci + a, dims[0]) - base[0]
         for b in range(2):
             pb0 = u0[1] if b else 1.0 - u0[1]
             pb1 = du[1] if b else -du[1]
+            ib = _clamp(cj + b, dims[1]) - base[1]
             ab0 = pa0 * pb0
             ab1 = pa0 * pb1 + pa1 * pb0
             ab2 = pa1 * pb1
             for e in range(2):
                 pc0 = u0[2] if e else 1.0 - u0[2]
                 pc1 = du[2] if e else -du[2]
-                f = _corner(vol, ci + a, cj + b, ck + e)
+                f = np.float64(pool[slot, ia, ib, _clamp(ck + e, dims[2]) - base[2]])
                 c[4 + 4 * a + 2 * b + e] = f
                 c[0] += f * (ab0 * pc0)
                 c[1] += f * (ab0 * pc1 + ab1 * pc0)
@@ -126,14 +131,18 @@ def _first_crossing(c, length, medium, at_start, cuts, out):
 
 
 @njit(cache=True, nogil=True)
-def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, fresnel, seed,
-          out_pos, out_dir, status, events, path, medium_out, cells, flat):
-    """Trace rays from ``pos`` (N, 3) [µm] (on T = 0, in phase ``medium0``) with unit ``dirs`` through
-    the iso-surface of ``vol`` (R, T, L) with voxels of ``h`` µm, corner at the origin, from T = 0 to
-    T = shape[1]·h; writes where and how each ray leaves, its interfaces and path [µm], the phase
-    it ends in, the cells it crossed and the crossings whose gradient was zero (``flat``: the ray
-    goes on undeflected there)."""
-    nr, nt, nl = vol.shape
+def march(pool, slots, block, dims, h, iso, ray_ids, n_wall, n_poly, max_events, fresnel, seed,
+          X_all, D_all, med_all, ev_all, length_all, cells_all, flat_all, s0_all, idx_all, resume, status, want):
+    """Trace rays through the iso-surface of a volume of ``dims`` voxels (R, T, L) of ``h`` µm, corner
+    at the origin, from T = 0 to T = dims[1]·h, as far as the blocks in ``pool`` take them.
+
+    ``slots[bi, bj, bk]``: the pool slot holding block (bi, bj, bk) (voxels from ``block``·b to
+    ``block``·(b + 1), clamped to the volume), or -1.  Per ray, in and out: its position [µm] and
+    unit direction, phase, interfaces, path [µm], the cells it crossed and the crossings whose
+    gradient was zero (``flat``: the ray goes on undeflected there); where it stands in its segment
+    (``s0``, ``idx``, used when ``resume``).  Out: ``status`` (NEEDS_CHUNK with the block in
+    ``want`` when it stopped for one) and, for the others, where and how it left."""
+    nr, nt, nl = dims[0], dims[1], dims[2]
     size = np.array([nr * h, nt * h, nl * h])
     c = np.empty(12)
     cuts = np.empty(4)
@@ -144,16 +153,20 @@ def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, 
     nrm = np.empty(3)
     u0 = np.empty(3)
     du = np.empty(3)
-    for r in range(pos.shape[0]):
+    u = np.empty(3)
+    idx = np.empty(3, np.int64)
+    base = np.empty(3, np.int64)
+    for r in range(X_all.shape[0]):
         for q in range(3):
-            X[q] = pos[r, q]
-            d[q] = dirs[r, q]
-        med = medium0[r]
-        ev = 0
-        length = 0.0
-        ncell = 0
-        nflat = 0
+            X[q] = X_all[r, q]
+            d[q] = D_all[r, q]
+        med = med_all[r]
+        ev = ev_all[r]
+        length = length_all[r]
+        ncell = cells_all[r]
+        nflat = flat_all[r]
         st = 0
+        again = resume[r]
         while st == 0:
             # Where the ray leaves the volume along this straight segment, and through which face.
             t_out = _BIG
@@ -169,10 +182,15 @@ def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, 
                     t_out, face = t, q
             t_out = max(t_out, 0.0)
             # Walk the cells of the centres' grid (cell i spans centres i and i + 1).
-            idx = np.empty(3, np.int64)
-            for q in range(3):
-                idx[q] = int(math.floor(X[q] / h - 0.5))
-            s0 = 0.0
+            if again:  # where it stopped for a block
+                s0 = s0_all[r]
+                for q in range(3):
+                    idx[q] = idx_all[r, q]
+                again = False
+            else:
+                s0 = 0.0
+                for q in range(3):
+                    idx[q] = int(math.floor(X[q] / h - 0.5))
             crossed = False
             while s0 < t_out:
                 # Until the ray has moved, its phase is the one it left its last crossing with: the
@@ -186,10 +204,22 @@ def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, 
                     elif d[q] < 0.0:
                         s1 = min(s1, ((idx[q] + 0.5) * h - X[q]) / d[q])
                 s1 = max(s1, s0)
+                bi = _clamp(idx[0], nr) // block
+                bj = _clamp(idx[1], nt) // block
+                bk = _clamp(idx[2], nl) // block
+                slot = slots[bi, bj, bk]
+                if slot < 0:  # stop here until the block is read
+                    st = NEEDS_CHUNK
+                    want[r, 0], want[r, 1], want[r, 2] = bi, bj, bk
+                    s0_all[r] = s0
+                    for q in range(3):
+                        idx_all[r, q] = idx[q]
+                    break
+                base[0], base[1], base[2] = bi * block, bj * block, bk * block
                 for q in range(3):
                     u0[q] = (X[q] + s0 * d[q]) / h - 0.5 - idx[q]
                     du[q] = d[q] / h
-                _cubic(vol, idx[0], idx[1], idx[2], u0, du, iso, c)
+                _cubic(pool, slot, base, dims, idx[0], idx[1], idx[2], u0, du, iso, c)
                 ncell += 1
                 if _first_crossing(c, s1 - s0, med, at_start, cuts, br):
                     crossed = True
@@ -201,6 +231,8 @@ def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, 
                     elif d[q] < 0.0 and ((idx[q] + 0.5) * h - X[q]) / d[q] <= s1:
                         idx[q] -= 1
                 s0 = s1
+            if st == NEEDS_CHUNK:
+                break
             if not crossed:
                 length += t_out
                 for q in range(3):
@@ -214,7 +246,6 @@ def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, 
                 break
             # The crossing: the gradient of the interpolant at the first point in the other phase.
             s_in, s_out = s0 + br[0], s0 + br[1]
-            u = np.empty(3)
             for q in range(3):
                 u[q] = u0[q] + br[1] * du[q]
             gx = gy = gz = 0.0
@@ -250,11 +281,12 @@ def march(vol, h, iso, pos, dirs, ray_ids, medium0, n_wall, n_poly, max_events, 
             if ev >= max_events:
                 st = TRAPPED
         for q in range(3):
-            out_pos[r, q] = X[q]
-            out_dir[r, q] = d[q]
+            X_all[r, q] = X[q]
+            D_all[r, q] = d[q]
         status[r] = st
-        events[r] = ev
-        path[r] = length
-        medium_out[r] = med
-        cells[r] = ncell
-        flat[r] = nflat
+        resume[r] = st == NEEDS_CHUNK
+        ev_all[r] = ev
+        length_all[r] = length
+        med_all[r] = med
+        cells_all[r] = ncell
+        flat_all[r] = nflat

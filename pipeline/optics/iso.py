@@ -6,6 +6,10 @@ trilinear interpolation of the grey levels between voxel centres, the wall is wh
 threshold (given, or Otsu's from the data), crossings are roots of the interpolant along each ray
 (:mod:`pipeline.optics._iso_march`) and normals its gradient.  It is a surface medium: the faces
 are handled by :func:`pipeline.optics.faces.through_faces` as for every medium.
+
+The volume is read lazily, in blocks of :data:`BLOCK`³ cells, as the rays reach them, into a pool
+of at most ``memory_bytes``; a NumPy array, a memory-mapped ``.npy`` or a Zarr array is read only
+where rays go, in its own data type (uint8, uint16, float32 or float64; others as float64).
 """
 
 from __future__ import annotations
@@ -16,8 +20,13 @@ import numpy as np
 
 from ..params import ParameterError
 from ._iso_march import march
+from .interface import NEEDS_CHUNK
 
 OTSU_BINS = 256
+BLOCK = 64  # cells a side of a block of the volume read at a time
+MEMORY_BYTES = 512 * 2 ** 20  # the pool of blocks one trace holds at most
+SAMPLE_VOXELS = 2 ** 24  # Otsu's threshold and the data's range from at most this many voxels
+_NATIVE = (np.uint8, np.uint16, np.float32, np.float64)
 
 
 def otsu_threshold(values: np.ndarray, bins: int = OTSU_BINS) -> float:
@@ -40,32 +49,65 @@ def otsu_threshold(values: np.ndarray, bins: int = OTSU_BINS) -> float:
 
 class IsoVolume:
     """A grey-level volume (R, T, L) of ``voxel_um`` voxels, its corner at the origin, as the
-    surface of level ``iso`` (None: Otsu's threshold of the data); wall above it."""
+    surface of level ``iso`` (None: Otsu's threshold of the data); wall above it.
+
+    ``array``: anything sliced like a NumPy array (a memory-mapped ``.npy``, a Zarr array), read in
+    blocks of ``block``³ cells only where rays go, at most ``memory_bytes`` of them at a time.  The
+    threshold and the check that it lies within the data use every voxel of a volume of up to
+    :data:`SAMPLE_VOXELS`, else every k-th L slice, or what the array's own ``sample()`` returns
+    (``iso_sample`` says which); every block read is checked for non-finite values."""
 
     medium_kind = "fields"
 
-    def __init__(self, array, *, voxel_um: float, iso: float | None = None):
+    def __init__(self, array, *, voxel_um: float, iso: float | None = None, block: int = BLOCK,
+                 memory_bytes: int = MEMORY_BYTES):
         if not (isinstance(voxel_um, (int, float)) and math.isfinite(voxel_um) and voxel_um > 0):
             raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel_um!r}")
-        if np.ndim(array) != 3 or min(np.shape(array)) < 1:
-            raise ParameterError(f"`volume` must be a 3-D array (R, T, L) of grey levels, got shape {np.shape(array)}")
-        data = np.ascontiguousarray(np.asarray(array), dtype=np.float64)
-        bad = ~np.isfinite(data)
-        if bad.any():
-            first = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise ParameterError(f"`volume` must hold finite grey levels, got {int(bad.sum())} that are not "
-                                 f"(the first at voxel {first})")
-        lo, hi = float(data.min()), float(data.max())
+        shape = tuple(int(n) for n in np.shape(array))
+        if len(shape) != 3 or min(shape) < 1:
+            raise ParameterError(f"`volume` must be a 3-D array (R, T, L) of grey levels, got shape {shape}")
+        if isinstance(block, bool) or not isinstance(block, int) or block < 1:
+            raise ParameterError(f"`block` must be an integer >= 1, got block={block!r}")
+        self.array = array if hasattr(array, "dtype") else np.asarray(array)
+        dtype = np.dtype(self.array.dtype)
+        if dtype.kind not in "biuf":
+            raise ParameterError(f"`volume` must hold numbers (grey levels), got dtype {dtype}")
+        self.dtype = np.dtype(np.uint8) if dtype.kind == "b" else next(
+            (np.dtype(t) for t in _NATIVE if np.dtype(t) == dtype), np.dtype(np.float64))
+        self.shape = shape
+        self.block = int(block)
+        self.memory_bytes = int(memory_bytes)
+        self.voxel_um = float(voxel_um)
+        self.thickness_um = shape[1] * self.voxel_um
+        step = max(1, math.ceil(math.prod(shape) / SAMPLE_VOXELS))
+        if hasattr(self.array, "sample"):  # a volume that says which of its grey levels to sample
+            self.iso_sample = "the volume's own sample"
+            sample = np.asarray(self.array.sample(), self.dtype)
+        else:
+            self.iso_sample = "every voxel" if step == 1 else f"every {step}th L slice"
+            sample = self._read((slice(None), slice(None), slice(None, None, step)), (0, 0, 0))
+        lo, hi = float(sample.min()), float(sample.max())
         self.iso_from = "given"
         if iso is None:
-            iso, self.iso_from = otsu_threshold(data), "otsu"
+            iso, self.iso_from = otsu_threshold(sample), "otsu"
         if not (isinstance(iso, (int, float)) and math.isfinite(iso) and lo <= iso < hi):
             raise ParameterError(f"`iso` must lie in the volume's grey levels [{lo:g}, {hi:g}), got iso={iso!r}")
-        self.data = data
-        self.voxel_um = float(voxel_um)
         self.iso = float(iso)
-        self.shape = data.shape
-        self.thickness_um = data.shape[1] * self.voxel_um
+        self.blocks_read = 0  # blocks read by the traces so far (a block read again counts again)
+
+    def _read(self, region, first) -> np.ndarray:
+        """The voxels of ``region`` (a tuple of slices) in the pool's data type, checked finite
+        (``first``: the region's first voxel, to name a bad one)."""
+        data = np.asarray(self.array[region])
+        if data.dtype != self.dtype:
+            data = data.astype(self.dtype)
+        if self.dtype.kind == "f":
+            bad = ~np.isfinite(data)
+            if bad.any():
+                at = tuple(int(i) + o for i, o in zip(np.argwhere(bad)[0], first))
+                raise ParameterError(f"`volume` must hold finite grey levels, got {int(bad.sum())} that are not "
+                                     f"(the first at voxel {at})")
+        return data
 
     def field(self, points_um) -> np.ndarray:
         """The interpolated grey level at ``points_um`` (N, 3) [µm] (constant beyond the outermost
@@ -74,13 +116,19 @@ class IsoVolume:
         i0 = np.floor(p).astype(np.int64)
         f = p - i0
         out = np.zeros(len(p))
+        if len(p) == 0:
+            return out
+        dims = np.array(self.shape)
+        lo = np.clip(i0.min(axis=0), 0, dims - 1)
+        hi = np.clip(i0.max(axis=0) + 1, 0, dims - 1)
+        box = self._read(tuple(slice(a, b + 1) for a, b in zip(lo, hi)), lo)
         for a in (0, 1):
             for b in (0, 1):
                 for e in (0, 1):
-                    idx = [np.clip(i0[:, q] + o, 0, self.shape[q] - 1) for q, o in enumerate((a, b, e))]
+                    idx = [np.clip(i0[:, q] + o, 0, self.shape[q] - 1) - lo[q] for q, o in enumerate((a, b, e))]
                     w = ((f[:, 0] if a else 1 - f[:, 0]) * (f[:, 1] if b else 1 - f[:, 1])
                          * (f[:, 2] if e else 1 - f[:, 2]))
-                    out += w * self.data[idx[0], idx[1], idx[2]]
+                    out += w * box[idx[0], idx[1], idx[2]].astype(np.float64)
         return out
 
     def entry_phase(self, origins_um) -> np.ndarray:
@@ -90,18 +138,61 @@ class IsoVolume:
         pos[:, 1] = 0.0
         inside = ((pos[:, 0] >= 0) & (pos[:, 0] <= self.shape[0] * self.voxel_um)
                   & (pos[:, 2] >= 0) & (pos[:, 2] <= self.shape[2] * self.voxel_um))
-        return np.where(inside, (self.field(pos) > self.iso).astype(np.uint8), 255).astype(np.uint8)
+        phase = np.full(len(pos), 255, np.uint8)
+        phase[inside] = (self.field(pos[inside]) > self.iso).astype(np.uint8)
+        return phase
 
     def march_walls(self, origins_um, directions, *, n_wall: float, n_poly: float, max_events: int,
                     fresnel: bool = False, seed: int = 0, ray_ids=None) -> dict:
+        """March the rays, reading each block of the volume when the first of them reaches it: round
+        after round, the rays stopped for blocks go on once the blocks most of them wait for are in
+        the pool (the least recently wanted make room), bit for bit as if the whole volume were."""
         pos = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
         pos[:, 1] = 0.0
         n = len(pos)
         ids = np.arange(n, dtype=np.int64) if ray_ids is None else np.asarray(ray_ids, np.int64)
-        phase = self.entry_phase(pos)
-        out = {"position": np.empty((n, 3)), "direction": np.empty((n, 3)), "status": np.empty(n, np.int64),
-               "events": np.empty(n, np.int64), "path": np.empty(n), "medium": np.empty(n, np.uint8),
-               "cells": np.empty(n, np.int64), "flat_normals": np.empty(n, np.int64)}
-        march(self.data, self.voxel_um, self.iso, pos, np.ascontiguousarray(directions, np.float64), ids,
-              phase, float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed), *out.values())
-        return out
+        B = self.block
+        grid = tuple(-(-s // B) for s in self.shape)
+        slots = np.full(grid, -1, np.int64)
+        side = B + 1
+        capacity = max(1, min(math.prod(grid), self.memory_bytes // (side ** 3 * self.dtype.itemsize)))
+        pool = np.zeros((capacity, side, side, side), self.dtype)
+        held = [None] * capacity  # the block in each slot
+        last = np.full(capacity, -1, np.int64)  # the round each slot was last wanted in
+        state = {"position": pos, "direction": np.array(directions, np.float64, copy=True).reshape(-1, 3),
+                 "medium": self.entry_phase(pos), "events": np.zeros(n, np.int64), "path": np.zeros(n),
+                 "cells": np.zeros(n, np.int64), "flat_normals": np.zeros(n, np.int64)}
+        s0, idx, resume = np.zeros(n), np.zeros((n, 3), np.int64), np.zeros(n, bool)
+        status, want = np.full(n, NEEDS_CHUNK, np.int64), np.zeros((n, 3), np.int64)
+        dims = np.array(self.shape, np.int64)
+        rnd = 0
+        while (todo := np.flatnonzero(status == NEEDS_CHUNK)).size:
+            if rnd:  # read the blocks the stopped rays wait for, most wanted first
+                keys, counts = np.unique(want[todo], axis=0, return_counts=True)
+                for q in np.flatnonzero(slots[tuple(keys.T)] >= 0):
+                    last[slots[tuple(keys[q])]] = rnd
+                missing = [tuple(int(v) for v in keys[q]) for q in np.argsort(-counts, kind="stable")
+                           if slots[tuple(keys[q])] < 0]
+                free = [int(q) for q in np.argsort(last, kind="stable") if last[q] < rnd]
+                for key, slot in zip(missing, free):
+                    if held[slot] is not None:
+                        slots[held[slot]] = -1
+                    first = tuple(b * B for b in key)
+                    data = self._read(tuple(slice(f, min(f + side, s)) for f, s in zip(first, self.shape)), first)
+                    pool[(slot,) + tuple(slice(0, m) for m in data.shape)] = data
+                    slots[key], held[slot], last[slot] = slot, key, rnd
+                    self.blocks_read += 1
+            part = {k: np.ascontiguousarray(v[todo]) for k, v in state.items()}
+            p_s0, p_idx, p_res = s0[todo], idx[todo], resume[todo]
+            p_status, p_want = np.empty(len(todo), np.int64), np.zeros((len(todo), 3), np.int64)
+            march(pool, slots, B, dims, self.voxel_um, self.iso, ids[todo], float(n_wall), float(n_poly),
+                  int(max_events), bool(fresnel), np.uint64(seed), part["position"], part["direction"],
+                  part["medium"], part["events"], part["path"], part["cells"], part["flat_normals"], p_s0, p_idx,
+                  p_res, p_status, p_want)
+            for k, v in part.items():
+                state[k][todo] = v
+            s0[todo], idx[todo], resume[todo], status[todo], want[todo] = p_s0, p_idx, p_res, p_status, p_want
+            rnd += 1
+        return {"position": state["position"], "direction": state["direction"], "status": status,
+                "events": state["events"], "path": state["path"], "medium": state["medium"],
+                "cells": state["cells"], "flat_normals": state["flat_normals"]}
