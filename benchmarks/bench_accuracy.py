@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import report_scans as scans
 from pipeline.analysis import fwhm, haze
 from pipeline.optics.rays import square_beam
 from pipeline.optics.settings import PRESETS, settings_for
@@ -268,6 +269,7 @@ def write(doc: dict, out: Path) -> None:
         md.append(f"| {deg:g} | {100 * math.sqrt(np.mean([r['fwhm_r_error'] ** 2 for r in sel])):.0f} % | "
                   f"{math.sqrt(np.mean([r['haze_error_points'] ** 2 for r in sel])):.1f} |")
     md += ["", *wood_section(out.parent / "tradeoff.json")]
+    md += ["", *scans.section(scans.read(out.parent / "iso.json"))]
     out.with_suffix(".md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 

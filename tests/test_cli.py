@@ -498,3 +498,15 @@ def test_a_bad_reference_is_one_line_naming_the_field(capsys, extra, message):
     code, _, err = run(capsys, "trace", "--preset", "birch", "--thickness-mm", "0.02", "--delta-ri", "0.01",
                        "--wall-um", "2")
     assert code == 2 and "`--wall-um` applies to --reference, not --preset" in err
+
+
+def test_output_read_by_a_pipe_that_closes_stops_in_one_line_with_sigpipes_status():
+    """`twray trace --json | head`: the reader goes away before the summary is written; twray says so
+    in one line and exits as a shell reports SIGPIPE (141), not with an error and its traceback."""
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "trace", "--preset", "birch", "--thickness-mm", "0.1",
+                             "--rays", "20", "--delta-ri", "0.01", "--json"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()  # the reader is gone before anything is written
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 141, err
+    assert err.strip().splitlines()[-1] == "twray: stopped: the output's reader closed the pipe"

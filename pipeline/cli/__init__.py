@@ -7,6 +7,7 @@ the rule, exit code 2, and nothing written.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -16,7 +17,7 @@ from ..cache import log_to_stderr
 from .. import runlog
 from ..params import ParameterError
 from ..runlog import RunFailed
-from .args import EXIT_ENVIRONMENT, EXIT_INTERRUPTED, EXIT_USAGE, Parser, YES_HELP, subparser
+from .args import EXIT_ENVIRONMENT, EXIT_INTERRUPTED, EXIT_PIPE, EXIT_USAGE, Parser, YES_HELP, subparser
 from .graphs import add_camera, add_study
 from .outputs import add_cache, add_design, add_figures, add_resummarize
 from .trace import add_trace
@@ -75,6 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     except RunFailed as exc:  # a Dask task failed: its line names the scene, the fix and the log
         print(f"twray: error: {exc}", file=sys.stderr)
         return EXIT_ENVIRONMENT
+    except BrokenPipeError:  # whoever read the output stopped reading (`twray trace --json | head`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        print("twray: stopped: the output's reader closed the pipe", file=sys.stderr)
+        return EXIT_PIPE
     except OSError as exc:  # the filesystem refused (disk full, permissions): one line, not a traceback
         print(f"twray: error: {runlog.os_error_line(exc)}; {runlog.traceback_note(exc)}", file=sys.stderr)
         return EXIT_ENVIRONMENT

@@ -18,6 +18,7 @@ EXIT_ENVIRONMENT = 1  # the disk, memory or a worker failed; or a defect (its tr
 
 
 EXIT_INTERRUPTED = 130  # as a shell reports a process ended by Ctrl-C
+EXIT_PIPE = 141  # as a shell reports a process whose output's reader went away (SIGPIPE)
 
 
 class Parser(argparse.ArgumentParser):

@@ -15,15 +15,15 @@ that a scan millimetres wide costs only what a trace reads of it.
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 from numba import njit
 
-from collections import OrderedDict
-
 from ..params import Grid, ParameterError, WoodParams, check_voxel
 from ..rng import SCAN_NOISE, normal
 from .model import generate_block
+from .store import ByteLRU
 
 SLAB_FINE_VOXELS = 32e6  # fine voxels generated at a time (memory: one byte each)
 TILE = 32  # LazyGreyScan generates tiles of TILE³ voxels
@@ -100,24 +100,28 @@ class LazyGreyScan:
     """:func:`grey_volume`'s scan of ``grid`` as an array whose parts are generated when read
     (``scan[i0:i1, j0:j1, k0:k1]``, float32), in tiles of :data:`TILE`³ voxels kept up to
     :data:`TILE_CACHE_BYTES`; each part is bit for bit the same part of the whole scan (a blurred
-    tile is generated with the halo its kernel reaches).  ``tiles_generated`` counts the tiles made."""
+    tile is generated with the halo its kernel reaches).  ``tiles_generated`` counts the tiles made,
+    ``generate_s`` the CPU seconds they took; ``cache_bytes`` bounds the tiles kept."""
 
     dtype = np.dtype(np.float32)
 
     def __init__(self, params: WoodParams, grid: Grid, *, seed: int, supersample: int = 4, blur_um: float = 0.0,
-                 noise: float = 0.0, noise_seed: int = 0):
+                 noise: float = 0.0, noise_seed: int = 0, cache_bytes: int = TILE_CACHE_BYTES):
+        self.cache_bytes = int(cache_bytes)
         self.fine = _checked(params, grid, supersample, blur_um, noise)
         self.params, self.grid, self.seed, self.s = params, grid, seed, supersample
         self.blur_um, self.noise, self.noise_seed = float(blur_um), float(noise), noise_seed
         self.shape = tuple(int(n) for n in grid.shape)
         self.ndim = 3
-        self.tiles: OrderedDict = OrderedDict()
+        self.tiles = ByteLRU(self.cache_bytes)
         self.tiles_generated = 0
+        self.generate_s = 0.0  # CPU seconds spent generating tiles
 
     def _tile(self, key) -> np.ndarray:
-        if key in self.tiles:
-            self.tiles.move_to_end(key)
-            return self.tiles[key]
+        kept = self.tiles.get(key)
+        if kept is not None:
+            return kept
+        t0 = time.process_time()
         lo = [k * TILE for k in key]
         hi = [min(a + TILE, n) for a, n in zip(lo, self.shape)]
         # The blur's halo: what its kernel reaches (scipy's radius), inside the scan.
@@ -133,10 +137,9 @@ class LazyGreyScan:
         part = np.ascontiguousarray(part[tuple(slice(a - g, b - g) for a, b, g in zip(lo, hi, glo))])
         if self.noise > 0:
             _add_noise(part, self.noise, np.uint64(self.noise_seed), *lo)
-        self.tiles[key] = part
+        self.tiles.put(key, part, part.nbytes)
         self.tiles_generated += 1
-        while len(self.tiles) * TILE ** 3 * 4 > TILE_CACHE_BYTES:
-            self.tiles.popitem(last=False)
+        self.generate_s += time.process_time() - t0
         return part
 
     def __getitem__(self, region) -> np.ndarray:

@@ -144,7 +144,8 @@ def _generator_pool(threads: int):
 
 
 def load_volume(path: str | Path):
-    """Read a user volume: ``.npy``, Zarr (a twray store or a bare array), or a folder of TIFF slices."""
+    """Open a user volume: ``.npy`` (memory-mapped), Zarr (a twray store or a bare array), or a folder of
+    TIFF slices (:class:`TiffStack`); each is read where a trace needs it."""
     path = Path(path)
     if not path.exists():
         raise ParameterError(f"`volume` must be an existing .npy, .zarr or TIFF folder, got {str(path)!r}")
@@ -168,8 +169,58 @@ def load_volume(path: str | Path):
         files = sorted(p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
         if not files:
             raise ParameterError(f"`volume` folder holds no .tif slices: {str(path)!r}")
-        return np.stack([tifffile.imread(f) for f in files], axis=-1)
+        return TiffStack(files)
     raise ParameterError(f"`volume` must be .npy, .zarr or a folder of TIFF slices, got {str(path)!r}")
+
+
+TIFF_CACHE_BYTES = 256 * 2 ** 20  # the slices a TiffStack keeps
+
+
+class TiffStack:
+    """A folder of TIFF slices (one per L, in name order; each R × T) as a 3-D array (R, T, L) whose
+    slices are read when a part of the volume needs them (``stack[i0:i1, j0:j1, k0:k1]``), the
+    most recently read kept up to :data:`TIFF_CACHE_BYTES`."""
+
+    ndim = 3
+
+    def __init__(self, files):
+        import tifffile
+
+        self.files = list(files)
+        with tifffile.TiffFile(self.files[0]) as first:
+            page = first.pages[0]
+            shape, self.dtype = tuple(int(n) for n in page.shape), np.dtype(page.dtype)
+        if len(shape) != 2:
+            raise ParameterError(f"`volume` TIFF slices must each be 2-D (R × T), got shape {shape} in "
+                                 f"{str(self.files[0])!r}")
+        self.shape = (*shape, len(self.files))
+        self._slices = ByteLRU(TIFF_CACHE_BYTES)
+
+    def _slice(self, k: int) -> np.ndarray:
+        import tifffile
+
+        data = self._slices.get(k)
+        if data is None:
+            data = tifffile.imread(self.files[k])
+            if data.shape != self.shape[:2]:
+                raise ParameterError(f"`volume` TIFF slices must all have one shape {self.shape[:2]}, got "
+                                     f"{data.shape} in {str(self.files[k])!r}")
+            self._slices.put(k, data, data.nbytes)
+        return data
+
+    def __getitem__(self, region) -> np.ndarray:
+        region = region if isinstance(region, tuple) else (region,)
+        region = region + (slice(None),) * (3 - len(region))
+        if not all(isinstance(r, slice) for r in region):
+            return np.asarray(self[:, :, :])[region]
+        ks = range(*region[2].indices(self.shape[2]))
+        out = np.empty((*np.empty(self.shape[:2], bool)[region[:2]].shape, len(ks)), self.dtype)
+        for q, k in enumerate(ks):
+            out[:, :, q] = self._slice(k)[region[:2]]
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        return np.asarray(self[:, :, :], dtype)
 
 
 def _runs_along_l(keys) -> list[list[tuple]]:

@@ -1,0 +1,80 @@
+"""Grey-level scans against `exact` (results/iso.json from `make bench-iso`), as Markdown for
+results/iso.md, results/accuracy.md and REPORT.md (docs/methods.md#iso-surfaces)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def configurations(doc: dict) -> list[dict]:
+    """The measured configurations of an iso.json (one per preset and thickness), thinnest first."""
+    configs = doc["configs"] if "configs" in doc else [doc]
+    return sorted(configs, key=lambda c: (c["args"]["preset"], c["args"]["thickness_mm"]))
+
+
+def read(path: Path) -> list[dict]:
+    """The configurations in ``path``, or none when it does not exist."""
+    return configurations(json.loads(Path(path).read_text())) if Path(path).exists() else []
+
+
+def _scene(a: dict) -> str:
+    return f"{a['preset']} {a['thickness_mm']:g} mm"
+
+
+def difference_table(configs: list[dict]) -> list[str]:
+    """One table of every configuration: each method's difference from `exact` on the same wood, beam and
+    rays, mean over the woods ± a 95 % t interval over them."""
+    lines = ["| scene | voxel [µm] | scan | method | FWHM_R [%] | FWHM_L [%] | haze [points] | "
+             "interfaces met [% of exact's] | µs an interface | rays not transmitted |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for c in configs:
+        a = c["args"]
+        n_exact = sum(r["interfaces"] for r in c["rows"] if r["method"] == "exact")
+        for e in c["table"]:
+            lines.append(f"| {_scene(a)} | {e['voxel_um']:g} | {e['scan']} | {e['method']} | "
+                         f"{e['fwhm_r'][0]:+.1f} ± {e['fwhm_r'][1]:.1f} | {e['fwhm_l'][0]:+.1f} ± {e['fwhm_l'][1]:.1f} | "
+                         f"{e['haze'][0]:+.2f} ± {e['haze'][1]:.2f} | {100 * (e['interfaces'] / n_exact - 1):+.1f} | "
+                         f"{e['us_per_interface']:.2f} | {e['lost']} of {e['woods'] * a['rays']} |")
+    return lines
+
+
+def how_made(configs: list[dict]) -> list[str]:
+    """Per configuration: the scene, the scan, `exact`'s own values and what the scans cost."""
+    out = []
+    for c in configs:
+        a, rows = c["args"], c["rows"]
+        ex = [r for r in rows if r["method"] == "exact"]
+        n_exact = sum(r["interfaces"] for r in ex)
+        vals = {q: [r[q] for r in ex] for q in ("fwhm_r", "fwhm_l", "haze")}
+        voxels = sorted({r["voxel_um"] for r in rows if r["voxel_um"] is not None}, reverse=True)
+        scans = {v: np.mean([r["scan_s"] for r in rows if r["voxel_um"] == v and r["scan"] == "clean"
+                             and r["method"] == "iso"] or [np.nan]) for v in voxels}
+        out.append(f"* **{_scene(a)}** at ΔRI {a['delta_ri']}: {len(ex)} woods x {a['rays']} rays, a {a['beam_um']:g} µm "
+                   f"beam in the middle of a {a['side_um']:g} µm wide scan ({a['supersample']}³ fine voxels a voxel); "
+                   f"`exact` FWHM_R {min(vals['fwhm_r']):.2f}-{max(vals['fwhm_r']):.2f}°, FWHM_L "
+                   f"{min(vals['fwhm_l']):.3f}-{max(vals['fwhm_l']):.3f}°, haze {100 * min(vals['haze']):.1f}-"
+                   f"{100 * max(vals['haze']):.1f} %, {n_exact:,} interfaces at "
+                   f"{1e6 * sum(r['cpu_s'] for r in ex) / n_exact:.1f} µs; making the clean scan's parts the rays "
+                   "read took " + ", ".join(f"{scans[v]:.0f} s a wood at {v:g} µm" for v in voxels)
+                   + f" ({c.get('seconds', float('nan')) / 60:.1f} min in all).")
+    return out
+
+
+INTRO = ("A grey-level scan of generated wood (each voxel's wall fraction from fine voxels of the generator's own "
+         "wood; clean, or blurred with noise) traced with `iso` on its iso-surface at ½, and binarised at ½ with "
+         "`accurate` and `fast` on its own voxels, beside `exact` on the same wood, beam and rays "
+         "(docs/methods.md#iso-surfaces). Each cell: the difference from `exact` (relative for the half-max widths, "
+         "in points for haze), its mean over the woods ± a 95 % t interval over them; each wood's difference "
+         "carries its own ray sampling, so the interval holds both. Rays not transmitted left through the scan's "
+         "sides, were reflected or trapped.")
+
+
+def section(configs: list[dict], heading: str = "##") -> list[str]:
+    """The section of results/accuracy.md and REPORT.md (none without measurements)."""
+    if not configs:
+        return []
+    return [f"{heading} Grey-level scans: `iso` and the binarised voxel methods against `exact`", "", INTRO, "",
+            *difference_table(configs), "", *how_made(configs), ""]
