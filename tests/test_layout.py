@@ -18,7 +18,7 @@ FLOORS = [
     {"pipeline.optics"},
     {"pipeline.limits", "pipeline.request", "pipeline.study", "pipeline.camera", "pipeline.wave"},
     {"pipeline.result_sets", "pipeline.figures", "pipeline.effects", "pipeline.report", "pipeline.report_tables", "pipeline.report_source",
-     "pipeline.report_geometry", "pipeline.report_wave", "pipeline.inventory",
+     "pipeline.report_geometry", "pipeline.report_wave", "pipeline.report_scans", "pipeline.inventory",
      "pipeline.trace_job", "pipeline.generate_job",
      "pipeline.cluster", "pipeline.design"},
     {"pipeline.cli", "pipeline.__main__"},
