@@ -50,8 +50,9 @@ def how_made(configs: list[dict]) -> list[str]:
         n_exact = sum(r["interfaces"] for r in ex)
         vals = {q: [r[q] for r in ex] for q in ("fwhm_r", "fwhm_l", "haze")}
         voxels = sorted({r["voxel_um"] for r in rows if r["voxel_um"] is not None}, reverse=True)
-        scans = {v: np.mean([r["scan_s"] for r in rows if r["voxel_um"] == v and r["scan"] == "clean"
-                             and r["method"] == "iso"] or [np.nan]) for v in voxels}
+        seeds = sorted({r["seed"] for r in rows})
+        scans = {v: np.mean([sum(r["scan_s"] for r in rows if r["voxel_um"] == v and r["scan"] == "clean"
+                                 and r["seed"] == s) for s in seeds]) for v in voxels}
         out.append(f"* **{_scene(a)}** at ΔRI {a['delta_ri']}: {len(ex)} woods x {a['rays']} rays, a {a['beam_um']:g} µm "
                    f"beam in the middle of a {a['side_um']:g} µm wide scan ({a['supersample']}³ fine voxels a voxel); "
                    f"`exact` FWHM_R {min(vals['fwhm_r']):.2f}-{max(vals['fwhm_r']):.2f}°, FWHM_L "

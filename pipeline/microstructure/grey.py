@@ -26,7 +26,7 @@ from .model import generate_block
 from .store import ByteLRU
 
 SLAB_FINE_VOXELS = 32e6  # fine voxels generated at a time (memory: one byte each)
-TILE = 32  # LazyGreyScan generates tiles of TILE³ voxels
+TILE = 16  # LazyGreyScan generates tiles of TILE³ voxels (16: a third less generated than 32 around rays)
 TILE_CACHE_BYTES = 256 * 2 ** 20  # the tiles a LazyGreyScan keeps
 TRUNCATE = 4.0  # the blur's kernel reaches TRUNCATE σ (scipy's default)
 

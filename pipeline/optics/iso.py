@@ -23,7 +23,7 @@ from ._iso_march import march
 from .interface import NEEDS_CHUNK
 
 OTSU_BINS = 256
-BLOCK = 64  # cells a side of a block of the volume read at a time
+BLOCK = 32  # cells a side of a block of the volume read at a time
 MEMORY_BYTES = 512 * 2 ** 20  # the pool of blocks one trace holds at most
 SAMPLE_VOXELS = 2 ** 24  # Otsu's threshold and the data's range from at most this many voxels
 _NATIVE = (np.uint8, np.uint16, np.float32, np.float64)
