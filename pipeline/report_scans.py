@@ -64,6 +64,23 @@ def how_made(configs: list[dict]) -> list[str]:
     return out
 
 
+def cost_table(configs: list[dict]) -> list[str]:
+    """Per scene, voxel and method: µs an interface (warm, the scan's parts already made) and the CPU
+    seconds a wood's scan took to make where that method's rays read it."""
+    lines = ["| scene | voxel [µm] | scan | method | µs an interface, warm | making the parts read [s a wood] |",
+             "|---|---|---|---|---|---|"]
+    for c in configs:
+        a, rows = c["args"], c["rows"]
+        ex = [r for r in rows if r["method"] == "exact"]
+        lines.append(f"| {_scene(a)} | – | – | exact | {1e6 * sum(r['cpu_s'] for r in ex) / sum(r['interfaces'] for r in ex):.2f} | – |")
+        for e in c["table"]:
+            mine = [r for r in rows if r["voxel_um"] == e["voxel_um"] and r["scan"] == e["scan"]
+                    and r["method"] == e["method"]]
+            lines.append(f"| {_scene(a)} | {e['voxel_um']:g} | {e['scan']} | {e['method']} | "
+                         f"{e['us_per_interface']:.2f} | {np.mean([r['scan_s'] for r in mine]):.0f} |")
+    return lines
+
+
 INTRO = ("A grey-level scan of generated wood (each voxel's wall fraction from fine voxels of the generator's own "
          "wood; clean, or blurred with noise) traced with `iso` on its iso-surface at ½, and binarised at ½ with "
          "`accurate` and `fast` on its own voxels, beside `exact` on the same wood, beam and rays "

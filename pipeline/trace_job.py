@@ -53,6 +53,7 @@ class TraceJob:
     target: Target | None = None
     fwhm: FwhmSpec = FwhmSpec()  # which width FWHM_R and FWHM_L are
     iso: float | None = None  # method iso: the wall's grey level (None: Otsu's threshold of the volume)
+    smooth_um: float = 0.0  # method iso: σ [µm] of a Gaussian smoothing of the grey levels (0: none)
 
     @property
     def traced_voxel_um(self) -> float:
@@ -77,7 +78,7 @@ def medium_of(job: TraceJob):
             raise ParameterError(f"`refine` applies to generated wood (--preset); a --volume has only its "
                                  f"own voxels, got refine={job.settings.refine}")
         if job.settings.medium_kind == "fields":
-            medium = IsoVolume(load_volume(job.volume), voxel_um=job.voxel_um, iso=job.iso)
+            medium = IsoVolume(load_volume(job.volume), voxel_um=job.voxel_um, iso=job.iso, smooth_um=job.smooth_um)
         else:
             medium = ArraySource(load_volume(job.volume), voxel_um=job.voxel_um)
         nr, nt, nl = medium.shape
@@ -144,7 +145,7 @@ def trace_medium(job: TraceJob, medium, centre, *, progress: str = "off") -> tup
         summary["target_ci"] = job.target.to_dict()
         summary["target_ci_met"] = job.target.met(summary)
     if job.settings.medium_kind == "fields":  # the threshold the walls were traced at, and where it came from
-        summary.update({"iso": medium.iso, "iso_from": medium.iso_from})
+        summary.update({"iso": medium.iso, "iso_from": medium.iso_from, "smooth_um": medium.smooth_um})
     summary.update({"delta_ri": job.optics.delta_ri, "ri_polymer": job.optics.n_poly,
                     "incidence_deg": list(job.incidence_deg or (0.0, 0.0)),
                     "seconds": time.perf_counter() - t0, **result.diagnostics})
@@ -164,7 +165,8 @@ def job_inputs(job: TraceJob, centre) -> dict:
             "voxel_um": job.voxel_um, "traced_voxel_um": job.traced_voxel_um, "delta_ri": job.optics.delta_ri,
             "ri_polymer": job.optics.n_poly, "rays": job.rays, "beam_um": job.beam_um,
             "beam_centre_um": list(centre), "incidence_deg": list(job.incidence_deg or (0.0, 0.0)),
-            "seed": job.seed, "settings": job.settings.to_dict(), "fwhm": job.fwhm.to_dict(), "iso": job.iso}
+            "seed": job.seed, "settings": job.settings.to_dict(), "fwhm": job.fwhm.to_dict(), "iso": job.iso,
+            "smooth_um": job.smooth_um}
 
 
 def _finite_or_none(value):

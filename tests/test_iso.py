@@ -127,6 +127,8 @@ def test_iso_applies_to_grey_volumes_only(tmp_path, capsys):
     assert "give --volume" in capsys.readouterr().err
     assert main(["trace", "--volume", str(path), "--iso", "3", "--delta-ri", "0.01", "--beam-um", "5"]) == 2
     assert "`--iso` applies to --method iso" in capsys.readouterr().err
+    assert main(["trace", "--volume", str(path), "--smooth-um", "0.5", "--delta-ri", "0.01", "--beam-um", "5"]) == 2
+    assert "`--smooth-um` applies to --method iso, got --method accurate" in capsys.readouterr().err
     assert main(["trace", "--volume", str(path), "--method", "iso", "--delta-ri", "0.01", "--beam-um", "50"]) == 2
     assert "`beam_um` must fit the volume" in capsys.readouterr().err
 
@@ -277,3 +279,30 @@ def test_a_lazy_grey_scan_is_the_whole_scan_part_by_part(blur, noise):
     t = grey.TILE
     assert lazy.tiles_generated == math.prod(len(range(a // t, -(-b // t))) for a, b in ((5, 30), (3, 20), (40, 66)))
     np.testing.assert_array_equal(lazy[:, :, ::3], whole[:, :, ::3])
+
+
+def test_a_smoothed_volume_is_traced_block_by_block_as_if_smoothed_whole():
+    """--smooth-um: each block is smoothed with the halo its kernel reaches, so the rays are those of
+    the whole volume smoothed at once by scipy, whatever the blocks; smoothing noise away brings the
+    normals back towards the clean surface's."""
+    from scipy.ndimage import gaussian_filter
+
+    from pipeline.optics.rays import square_beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.trace import trace
+
+    rng = np.random.default_rng(5)
+    i, j, k = np.meshgrid(*[np.arange(n) for n in (40, 36, 40)], indexing="ij")
+    clean = (np.cos(0.35 * i + 0.2 * j) + np.cos(0.3 * k - 0.25 * j)).astype(np.float32)
+    noisy = (clean + rng.normal(0, 0.3, clean.shape)).astype(np.float32)
+    beam = square_beam(60, 6.0, (10.0, 10.0), seed=2)
+    optics, s = Optics(1.5, 1.49), settings_for("iso")
+    whole = trace(IsoVolume(gaussian_filter(noisy, sigma=1.5, mode="nearest"), voxel_um=0.5, iso=0.0), beam,
+                  optics, s)
+    for block in (64, 5):
+        part = trace(IsoVolume(noisy, voxel_um=0.5, iso=0.0, smooth_um=0.75, block=block), beam, optics, s)
+        np.testing.assert_array_equal(part.exit_direction, whole.exit_direction, err_msg=f"block {block}")
+    raw = trace(IsoVolume(noisy, voxel_um=0.5, iso=0.0), beam, optics, s)
+    ref = trace(IsoVolume(clean, voxel_um=0.5, iso=0.0), beam, optics, s)
+    assert raw.events.sum() > 1.3 * ref.events.sum()  # noise adds crossings the clean surface does not have
+    assert abs(whole.events.sum() - ref.events.sum()) < abs(raw.events.sum() - ref.events.sum())

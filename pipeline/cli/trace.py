@@ -42,6 +42,8 @@ def add_trace(sub):
                                                   "a grey-level --volume's iso-surface)")
     p.add_argument("--iso", default=None, help="with --method iso: the wall's grey level (default: Otsu's "
                                                "threshold of the volume, stated in the output)")
+    p.add_argument("--smooth-um", default=None, help="with --method iso: smooth the grey levels by a Gaussian of "
+                                                     "this σ [µm] before tracing (against noise; default 0)")
     p.add_argument("--exit", default="internal", help="angles inside the sample (internal) or in air")
     p.add_argument("--fresnel", action="store_true", help="partial Fresnel reflection")
     p.add_argument("--step-vox", default=None, help="paper marching step [voxels] (default 2)")
@@ -126,6 +128,11 @@ def _trace_job(args):
         if settings.method != "iso":
             raise ParameterError(f"`--iso` applies to --method iso, got --method {settings.method}")
         iso = number(args.iso, "iso")
+    smooth_um = 0.0
+    if args.smooth_um is not None:
+        if settings.method != "iso":
+            raise ParameterError(f"`--smooth-um` applies to --method iso, got --method {settings.method}")
+        smooth_um = number(args.smooth_um, "smooth_um")
     wood = thickness_um = ref = None
     lattice_args = {"--pitch-um": args.pitch_um, "--wall-um": args.wall_um, "--r-outer-um": args.r_outer_um,
                     "--jitter": None if args.jitter == "0" else args.jitter}
@@ -158,14 +165,16 @@ def _trace_job(args):
     return TraceJob(settings=settings, optics=optics, rays=rays, beam_um=beam_um, voxel_um=voxel,
                     seed=optics.seed, volume=args.volume, wood=wood, reference=ref, thickness_um=thickness_um,
                     beam_origin_um=origin, incidence_deg=_incidence(args.incidence_deg), target=target,
-                    fwhm=fwhm_spec, iso=iso)
+                    fwhm=fwhm_spec, iso=iso, smooth_um=smooth_um)
 
 
 def _iso_text(summary: dict) -> str:
     """Method iso: the threshold traced, and whether it was given or Otsu's."""
     if "iso" not in summary:
         return ""
-    return f" at grey level {summary['iso']:.6g}" + (" (Otsu's threshold)" if summary["iso_from"] == "otsu" else "")
+    smooth = f", smoothed σ {summary['smooth_um']:g} µm" if summary.get("smooth_um") else ""
+    return (f" at grey level {summary['iso']:.6g}" + (" (Otsu's threshold)" if summary["iso_from"] == "otsu" else "")
+            + smooth)
 
 
 def _fwhm_spec(name: str):

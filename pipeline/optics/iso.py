@@ -25,6 +25,7 @@ from .interface import NEEDS_CHUNK
 OTSU_BINS = 256
 BLOCK = 32  # cells a side of a block of the volume read at a time
 MEMORY_BYTES = 512 * 2 ** 20  # the pool of blocks one trace holds at most
+SMOOTH_TRUNCATE = 4.0  # a smoothing kernel reaches this many σ (scipy's default)
 SAMPLE_VOXELS = 2 ** 24  # Otsu's threshold and the data's range from at most this many voxels
 _NATIVE = (np.uint8, np.uint16, np.float32, np.float64)
 
@@ -53,6 +54,9 @@ class IsoVolume:
 
     ``array``: anything sliced like a NumPy array (a memory-mapped ``.npy``, a Zarr array), read in
     blocks of ``block``³ cells only where rays go, at most ``memory_bytes`` of them at a time.  The
+    ``smooth_um`` > 0: the field is the volume smoothed by a Gaussian of that σ [µm] (a pre-filter
+    against noise, applied block by block with the kernel's halo: the same values as the whole
+    volume smoothed at once).  The
     threshold and the check that it lies within the data use every voxel of a volume of up to
     :data:`SAMPLE_VOXELS`, else every k-th L slice, or what the array's own ``sample()`` returns
     (``iso_sample`` says which); every block read is checked for non-finite values."""
@@ -60,7 +64,7 @@ class IsoVolume:
     medium_kind = "fields"
 
     def __init__(self, array, *, voxel_um: float, iso: float | None = None, block: int = BLOCK,
-                 memory_bytes: int = MEMORY_BYTES):
+                 memory_bytes: int = MEMORY_BYTES, smooth_um: float = 0.0):
         if not (isinstance(voxel_um, (int, float)) and math.isfinite(voxel_um) and voxel_um > 0):
             raise ParameterError(f"`voxel_um` must be > 0 µm, got voxel_um={voxel_um!r}")
         shape = tuple(int(n) for n in np.shape(array))
@@ -74,6 +78,12 @@ class IsoVolume:
             raise ParameterError(f"`volume` must hold numbers (grey levels), got dtype {dtype}")
         self.dtype = np.dtype(np.uint8) if dtype.kind == "b" else next(
             (np.dtype(t) for t in _NATIVE if np.dtype(t) == dtype), np.dtype(np.float64))
+        if isinstance(smooth_um, bool) or not (isinstance(smooth_um, (int, float)) and math.isfinite(smooth_um)
+                                               and smooth_um >= 0):
+            raise ParameterError(f"`smooth_um` must be a number >= 0 µm, got smooth_um={smooth_um!r}")
+        self.smooth_um = float(smooth_um)
+        if self.smooth_um > 0 and self.dtype != np.float64:
+            self.dtype = np.dtype(np.float32)  # a smoothed field is not integers
         self.shape = shape
         self.block = int(block)
         self.memory_bytes = int(memory_bytes)
@@ -85,7 +95,7 @@ class IsoVolume:
             sample = np.asarray(self.array.sample(), self.dtype)
         else:
             self.iso_sample = "every voxel" if step == 1 else f"every {step}th L slice"
-            sample = self._read((slice(None), slice(None), slice(None, None, step)), (0, 0, 0))
+            sample = self._raw((slice(None), slice(None), slice(None, None, step)), (0, 0, 0))
         lo, hi = float(sample.min()), float(sample.max())
         self.iso_from = "given"
         if iso is None:
@@ -97,7 +107,21 @@ class IsoVolume:
 
     def _read(self, region, first) -> np.ndarray:
         """The voxels of ``region`` (a tuple of slices) in the pool's data type, checked finite
-        (``first``: the region's first voxel, to name a bad one)."""
+        (``first``: the region's first voxel, to name a bad one), smoothed when ``smooth_um``
+        (read with the halo the kernel reaches, so a block is that part of the whole volume smoothed)."""
+        if self.smooth_um > 0 and all(r.step in (None, 1) for r in region):
+            from scipy.ndimage import gaussian_filter
+
+            spans = [r.indices(n)[:2] for r, n in zip(region, self.shape)]
+            halo = int(SMOOTH_TRUNCATE * self.smooth_um / self.voxel_um + 0.5)
+            wide = [(max(a - halo, 0), min(b + halo, n)) for (a, b), n in zip(spans, self.shape)]
+            raw = self._raw(tuple(slice(a, b) for a, b in wide), [a for a, _ in wide])
+            out = gaussian_filter(raw.astype(self.dtype), sigma=self.smooth_um / self.voxel_um, mode="nearest",
+                                  truncate=SMOOTH_TRUNCATE)
+            return np.ascontiguousarray(out[tuple(slice(a - w, b - w) for (a, b), (w, _) in zip(spans, wide))])
+        return self._raw(region, first)
+
+    def _raw(self, region, first) -> np.ndarray:
         data = np.asarray(self.array[region])
         if data.dtype != self.dtype:
             data = data.astype(self.dtype)
