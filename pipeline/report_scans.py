@@ -83,7 +83,8 @@ def cost_table(configs: list[dict]) -> list[str]:
 
 INTRO = ("A grey-level scan of generated wood (each voxel's wall fraction from fine voxels of the generator's own "
          "wood; clean, or blurred with noise) traced with `iso` on its iso-surface at ½, and binarised at ½ with "
-         "`accurate` and `fast` on its own voxels, beside `exact` on the same wood, beam and rays "
+         "`accurate` and `fast` on its own voxels (and, on the noisy scans, `iso` on the scan pre-filtered by a "
+         "Gaussian of σ 0.5 µm, `--smooth-um 0.5`), beside `exact` on the same wood, beam and rays "
          "(docs/methods.md#iso-surfaces). Each cell: the difference from `exact` (relative for the half-max widths, "
          "in points for haze), its mean over the woods ± a 95 % t interval over them; each wood's difference "
          "carries its own ray sampling, so the interval holds both. Rays not transmitted left through the scan's "
