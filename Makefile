@@ -139,13 +139,15 @@ bench-accuracy: install
 
 ## Grey-level scans traced with iso, and binarised with accurate and fast, beside exact on the same wood and rays
 ## (birch 0.25 mm at 1, 0.5 and 0.25 µm, clean and blurred+noisy; birch and balsa 1 mm at 1 and 0.5 µm, clean;
-## 5 woods x 4000 rays each; scans generated where the rays read them) -> results/iso.json, results/iso.md and
+## 5 woods x 4000 rays each; scans generated where the rays read them; the reference lattices of
+## results/accuracy.md as grey scans) -> results/iso.json, results/iso.md and
 ## the scans' section of results/accuracy.md (about an hour on 2 cores).
 ISO_1MM = --thickness-mm 1 --voxels 1,0.5 --scans clean --side-um 800 --beam-um 100 --rays 4000 --out results/iso.json
 bench-iso: install
 	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxels 1,0.5,0.25 --rays 4000 --out results/iso.json
 	$(BIN)/python benchmarks/bench_iso.py --preset birch $(ISO_1MM)
-	$(BIN)/python benchmarks/bench_iso.py --preset balsa $(ISO_1MM) --md results/iso.md
+	$(BIN)/python benchmarks/bench_iso.py --preset balsa $(ISO_1MM)
+	$(BIN)/python benchmarks/bench_iso.py --lattices --out results/iso.json --md results/iso.md
 	$(BIN)/python benchmarks/bench_accuracy.py --render
 
 ## Speed against accuracy of every setting, on lattices and on the wood against `exact` -> results/tradeoff.zarr,

@@ -92,6 +92,66 @@ def one_wood(seed: int, args) -> list[dict]:
     return rows
 
 
+def one_lattice(case) -> list[dict]:
+    """One reference lattice of results/accuracy.md (family, wall in voxels at 0.5 µm, ΔRI) as a grey scan
+    at 0.5 µm (each voxel's wall fraction from 4² points of its section), traced with iso and, binarised at ½,
+    with accurate and fast on its voxels, against the independent exact tracer on the same 4000 rays."""
+    import bench_accuracy as acc
+
+    from pipeline.analysis import LORENTZ_MLE, fwhm, haze
+    from pipeline.optics.iso import IsoVolume
+    from pipeline.optics.rays import Beam, square_beam
+    from pipeline.optics.settings import Optics, settings_for
+    from pipeline.optics.sources import ArraySource
+    from pipeline.optics.trace import trace
+
+    family, wall, dri = case
+    n_wall, n_poly = acc.INDICES[dri]
+    lat, h, t_um = acc.lattice(family, wall), acc.VOXEL, 250.0
+    beam = square_beam(4000, 150.0, seed=1)
+    ex = lat.trace_independently(beam.origins, beam.unit_directions(), n_wall=n_wall, n_poly=n_poly, thickness_um=t_um)
+    half = 250.0  # the scan spans R ∈ [-250, 250) µm, L ∈ [-80, 80) µm around the beam
+    n_r, n_t, n_l = int(2 * half / h), int(round(t_um / h)), int(160 / h)
+    section = lat.grey_section(voxel_um=h, r0_um=-half, n_r=n_r, n_t=n_t)
+    scan = np.broadcast_to(section[:, :, None], (n_r, n_t, n_l))  # constant along L
+    shifted = Beam(beam.origins + np.array([half, 0.0, 80.0]), beam.direction, beam.ray_ids)
+    fe, he = fwhm(ex.theta_r[ex.transmitted], LORENTZ_MLE), haze(ex.direction[ex.transmitted])
+    rows = []
+    for method in ("iso", "accurate", "fast"):
+        medium = (IsoVolume(scan, voxel_um=h, iso=0.5) if method == "iso"
+                  else ArraySource(Binarised(scan, 0.5), voxel_um=h))
+        c0 = time.process_time()
+        r = trace(medium, shifted, Optics(n_wall, n_poly),
+                  settings_for(method, **({} if method == "iso" else {"refine": 1})))
+        cpu = time.process_time() - c0
+        fv, hv = fwhm(r.theta_r[r.transmitted], LORENTZ_MLE), haze(r.direction[r.transmitted])
+        rows.append({"family": family, "wall_vox": wall, "delta_ri": dri, "method": method,
+                     "fwhm_r_exact_deg": fe, "fwhm_r_deg": fv, "fwhm_r_error": fv / fe - 1.0 if fe >= 0.05 else None,
+                     "haze_exact": he, "haze": hv, "haze_error_points": 100.0 * (hv - he),
+                     "interfaces_exact": int(ex.events.sum()), "interfaces": int(r.events.sum()),
+                     "transmitted": int(r.transmitted.sum()), "cpu_s": cpu})
+    return rows
+
+
+def lattices(args) -> None:
+    """Every lattice case of results/accuracy.md as a grey scan; the rows go to --out's "lattices"."""
+    import bench_accuracy as acc
+
+    cases = [(f, w, d) for f in acc.FAMILIES for w in acc.WALLS_VOX for d in acc.INDICES]
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(args.processes) as pool:
+        rows = [r for part in pool.map(one_lattice, cases) for r in part]
+    from pipeline.report_scans import lattice_table
+
+    print("\n".join(lattice_table(rows)))
+    if args.out:
+        doc = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
+        if "configs" not in doc:
+            doc = {"configs": [doc] if doc else []}
+        doc["lattices"] = {"rows": rows, "seconds": time.perf_counter() - t0}
+        Path(args.out).write_text(json.dumps(doc, indent=1))
+
+
 def voxel_sizes(args) -> list[float]:
     return [float(v) for v in str(args.voxels).split(",")]
 
@@ -137,7 +197,14 @@ def main():
     p.add_argument("--cache-mb", type=int, default=2048, help="tiles of a scan each process keeps")
     p.add_argument("--out", default=None, help="JSON: this configuration (preset, thickness) added to or replaced in it")
     p.add_argument("--md", default=None, help="every configuration of --out as Markdown (results/iso.md)")
+    p.add_argument("--lattices", action="store_true", help="the reference lattices of results/accuracy.md as grey "
+                                                           "scans, against their exact tracer (into --out)")
     args = p.parse_args()
+    if args.lattices:
+        lattices(args)
+        if args.md:
+            write_md(args)
+        return
     for name in args.scans.split(","):
         if name not in SCANS:
             p.error(f"--scans: {name!r} is none of {', '.join(SCANS)}")
@@ -157,18 +224,20 @@ def main():
 
         key = (args.preset, args.thickness_mm)
         kept = [c for c in read(Path(args.out)) if (c["args"]["preset"], c["args"]["thickness_mm"]) != key]
-        Path(args.out).write_text(json.dumps({"configs": kept + [config]}, indent=1))
+        doc = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
+        Path(args.out).write_text(json.dumps({**({"lattices": doc["lattices"]} if "lattices" in doc else {}),
+                                              "configs": kept + [config]}, indent=1))
     if args.md:
         write_md(args)
 
 
 def write_md(args) -> None:
     """results/iso.md from every configuration in --out."""
-    from pipeline.report_scans import read, section
+    from pipeline.report_scans import read, read_lattices, section
 
     text = ["# Grey-level scans against `exact` on the same wood", "",
             "Generated by `make bench-iso`; every number is in `iso.json`.", "",
-            *section(read(Path(args.out)), "##")[2:]]
+            *section(read(Path(args.out)), "##", read_lattices(Path(args.out)))[2:]]
     Path(args.md).write_text("\n".join(text))
 
 

@@ -84,6 +84,15 @@ class Lattice:
         t = (np.arange(n_t) + 0.5) * voxel_um
         return np.repeat(self.phase(r, t)[:, :, None], length, axis=2)
 
+    def grey_section(self, *, voxel_um: float, r0_um: float, n_r: int, n_t: int, supersample: int = 4) -> np.ndarray:
+        """The section as a scan records it: the wall fraction (float32, shape (n_r, n_t)) of each voxel
+        from ``supersample``² points at the centres of its sub-squares (the lattice is constant along L).
+        Voxel (i, j) spans R ∈ r0_um + [i, i + 1)·voxel_um, T ∈ [j, j + 1)·voxel_um."""
+        s = int(supersample)
+        r = r0_um + (np.arange(n_r * s) + 0.5) * (voxel_um / s)
+        t = (np.arange(n_t * s) + 0.5) * (voxel_um / s)
+        return self.phase(r, t).reshape(n_r, s, n_t, s).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+
     def source(self, *, thickness_um: float, voxel_um: float, chunks=(64, 64, 64)) -> "LatticeSource":
         """The lattice, ``thickness_um`` thick along T, as the tracer's voxel source (unbounded in R, L)."""
         return LatticeSource(self, thickness_um=thickness_um, voxel_um=voxel_um, chunks=chunks)
