@@ -82,8 +82,10 @@ def one_wood(seed: int, args) -> list[dict]:
             grey = LazyGreyScan(params, grid, seed=seed, supersample=args.supersample, blur_um=blur, noise=noise,
                                 noise_seed=seed, cache_bytes=args.cache_mb * 2 ** 20)
             for method in METHODS:
-                if method.startswith("iso ") and not noise:
+                if method not in (args.methods.split(",") if args.methods else METHODS):
                     continue
+                if method.startswith("iso ") and not noise and not args.methods:
+                    continue  # by default the pre-filter only where there is noise
                 # Blocks and chunks of 16 and 32 voxels: they generate the least around the rays.
                 medium = (IsoVolume(grey, voxel_um=h, iso=0.5, block=16,
                                     smooth_um=SMOOTH_UM if method.startswith("iso ") else 0.0)
@@ -195,6 +197,10 @@ def main():
     p.add_argument("--woods", type=int, default=5)
     p.add_argument("--processes", type=int, default=2)
     p.add_argument("--cache-mb", type=int, default=2048, help="tiles of a scan each process keeps")
+    p.add_argument("--methods", default=None, help=f"comma-separated, of: {', '.join(METHODS)} (default: all, the "
+                                                   "smoothed iso on noisy scans only; given, on every scan)")
+    p.add_argument("--merge", action="store_true", help="add this run's rows to the configuration already in --out "
+                                                        "(rows of the same wood, voxel, scan and method replaced)")
     p.add_argument("--out", default=None, help="JSON: this configuration (preset, thickness) added to or replaced in it")
     p.add_argument("--md", default=None, help="every configuration of --out as Markdown (results/iso.md)")
     p.add_argument("--lattices", action="store_true", help="the reference lattices of results/accuracy.md as grey "
@@ -223,7 +229,15 @@ def main():
         from pipeline.report_scans import read
 
         key = (args.preset, args.thickness_mm)
+        old = [c for c in read(Path(args.out)) if (c["args"]["preset"], c["args"]["thickness_mm"]) == key]
         kept = [c for c in read(Path(args.out)) if (c["args"]["preset"], c["args"]["thickness_mm"]) != key]
+        if args.merge and old:
+            def ident(r):
+                return r["seed"], r["voxel_um"], r["scan"], r["method"]
+            new_ids = {ident(r) for r in rows}
+            rows = [r for r in old[0]["rows"] if ident(r) not in new_ids] + rows
+            config = {"args": {**old[0]["args"], "merged": [*old[0]["args"].get("merged", []), vars(args)]},
+                      "rows": rows, "table": table(rows), "seconds": old[0]["seconds"] + config["seconds"]}
         doc = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
         Path(args.out).write_text(json.dumps({**({"lattices": doc["lattices"]} if "lattices" in doc else {}),
                                               "configs": kept + [config]}, indent=1))
