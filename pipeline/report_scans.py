@@ -77,16 +77,15 @@ def how_made(configs: list[dict]) -> list[str]:
         n_exact = sum(r["interfaces"] for r in ex)
         vals = {q: [r[q] for r in ex] for q in ("fwhm_r", "fwhm_l", "haze")}
         voxels = sorted({r["voxel_um"] for r in rows if r["voxel_um"] is not None}, reverse=True)
-        seeds = sorted({r["seed"] for r in rows})
-        scans = {v: np.mean([sum(r["scan_s"] for r in rows if r["voxel_um"] == v and r["scan"] == "clean"
-                                 and r["seed"] == s) for s in seeds]) for v in voxels}
+        scans = {v: np.mean([r["scan_s"] for r in rows if r["voxel_um"] == v and r["scan"] == "clean"
+                             and r["method"] == "iso"]) for v in voxels}
         out.append(f"* **{_scene(a)}** at ΔRI {a['delta_ri']}: {len(ex)} woods x {a['rays']} rays, a {a['beam_um']:g} µm "
                    f"beam in the middle of a {a['side_um']:g} µm wide scan ({a['supersample']}³ fine voxels a voxel); "
                    f"`exact` FWHM_R {min(vals['fwhm_r']):.2f}-{max(vals['fwhm_r']):.2f}°, FWHM_L "
                    f"{min(vals['fwhm_l']):.3f}-{max(vals['fwhm_l']):.3f}°, haze {100 * min(vals['haze']):.1f}-"
                    f"{100 * max(vals['haze']):.1f} %, {n_exact:,} interfaces at "
-                   f"{1e6 * sum(r['cpu_s'] for r in ex) / n_exact:.1f} µs; making the clean scan's parts the rays "
-                   "read took " + ", ".join(f"{scans[v]:.0f} s a wood at {v:g} µm" for v in voxels)
+                   f"{1e6 * sum(r['cpu_s'] for r in ex) / n_exact:.1f} µs; making the parts of the clean scan that "
+                   "`iso`'s rays read (the first traced) took " + ", ".join(f"{scans[v]:.0f} s a wood at {v:g} µm" for v in voxels)
                    + f" ({c.get('seconds', float('nan')) / 60:.1f} min in all).")
     return out
 
@@ -110,8 +109,9 @@ def cost_table(configs: list[dict]) -> list[str]:
 
 INTRO = ("A grey-level scan of generated wood (each voxel's wall fraction from fine voxels of the generator's own "
          "wood; clean, or blurred with noise) traced with `iso` on its iso-surface at ½, and binarised at ½ with "
-         "`accurate` and `fast` on its own voxels (and, on the noisy scans, `iso` on the scan pre-filtered by a "
-         "Gaussian of σ 0.5 µm, `--smooth-um 0.5`), beside `exact` on the same wood, beam and rays "
+         "`accurate` and `fast` on its own voxels (and `iso` on the scan pre-filtered by a Gaussian of σ 0.5 µm, "
+         "`--smooth-um 0.5`: on the noisy scans, and on birch 0.25 mm's clean scan at 0.5 µm), beside `exact` on "
+         "the same wood, beam and rays "
          "(docs/methods.md#iso-surfaces). Each cell: the difference from `exact` (relative for the half-max widths, "
          "in points for haze), its mean over the woods ± a 95 % t interval over them; each wood's difference "
          "carries its own ray sampling, so the interval holds both. Rays not transmitted left through the scan's "

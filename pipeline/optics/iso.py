@@ -15,6 +15,7 @@ where rays go, in its own data type (uint8, uint16, float32 or float64; others a
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -104,6 +105,8 @@ class IsoVolume:
             raise ParameterError(f"`iso` must lie in the volume's grey levels [{lo:g}, {hi:g}), got iso={iso!r}")
         self.iso = float(iso)
         self.blocks_read = 0  # blocks read by the traces so far (a block read again counts again)
+        self._blocks = None  # the pool of blocks read, kept between traces
+        self._lock = threading.Lock()
 
     def _read(self, region, first) -> np.ndarray:
         """The voxels of ``region`` (a tuple of slices) in the pool's data type, checked finite
@@ -170,53 +173,74 @@ class IsoVolume:
                     fresnel: bool = False, seed: int = 0, ray_ids=None) -> dict:
         """March the rays, reading each block of the volume when the first of them reaches it: round
         after round, the rays stopped for blocks go on once the blocks most of them wait for are in
-        the pool (the least recently wanted make room), bit for bit as if the whole volume were."""
+        the pool (kept between traces; the least recently wanted make room), bit for bit as if the
+        whole volume were.  One trace at a time marches a volume (a lock)."""
         pos = np.array(origins_um, np.float64, copy=True).reshape(-1, 3)
         pos[:, 1] = 0.0
         n = len(pos)
         ids = np.arange(n, dtype=np.int64) if ray_ids is None else np.asarray(ray_ids, np.int64)
-        B = self.block
-        grid = tuple(-(-s // B) for s in self.shape)
-        slots = np.full(grid, -1, np.int64)
-        side = B + 1
-        capacity = max(1, min(math.prod(grid), self.memory_bytes // (side ** 3 * self.dtype.itemsize)))
-        pool = np.zeros((capacity, side, side, side), self.dtype)
-        held = [None] * capacity  # the block in each slot
-        last = np.full(capacity, -1, np.int64)  # the round each slot was last wanted in
         state = {"position": pos, "direction": np.array(directions, np.float64, copy=True).reshape(-1, 3),
                  "medium": self.entry_phase(pos), "events": np.zeros(n, np.int64), "path": np.zeros(n),
                  "cells": np.zeros(n, np.int64), "flat_normals": np.zeros(n, np.int64)}
         s0, idx, resume = np.zeros(n), np.zeros((n, 3), np.int64), np.zeros(n, bool)
         status, want = np.full(n, NEEDS_CHUNK, np.int64), np.zeros((n, 3), np.int64)
         dims = np.array(self.shape, np.int64)
-        rnd = 0
-        while (todo := np.flatnonzero(status == NEEDS_CHUNK)).size:
-            if rnd:  # read the blocks the stopped rays wait for, most wanted first
-                keys, counts = np.unique(want[todo], axis=0, return_counts=True)
-                for q in np.flatnonzero(slots[tuple(keys.T)] >= 0):
-                    last[slots[tuple(keys[q])]] = rnd
-                missing = [tuple(int(v) for v in keys[q]) for q in np.argsort(-counts, kind="stable")
-                           if slots[tuple(keys[q])] < 0]
-                free = [int(q) for q in np.argsort(last, kind="stable") if last[q] < rnd]
-                for key, slot in zip(missing, free):
-                    if held[slot] is not None:
-                        slots[held[slot]] = -1
-                    first = tuple(b * B for b in key)
-                    data = self._read(tuple(slice(f, min(f + side, s)) for f, s in zip(first, self.shape)), first)
-                    pool[(slot,) + tuple(slice(0, m) for m in data.shape)] = data
-                    slots[key], held[slot], last[slot] = slot, key, rnd
-                    self.blocks_read += 1
-            part = {k: np.ascontiguousarray(v[todo]) for k, v in state.items()}
-            p_s0, p_idx, p_res = s0[todo], idx[todo], resume[todo]
-            p_status, p_want = np.empty(len(todo), np.int64), np.zeros((len(todo), 3), np.int64)
-            march(pool, slots, B, dims, self.voxel_um, self.iso, ids[todo], float(n_wall), float(n_poly),
-                  int(max_events), bool(fresnel), np.uint64(seed), part["position"], part["direction"],
-                  part["medium"], part["events"], part["path"], part["cells"], part["flat_normals"], p_s0, p_idx,
-                  p_res, p_status, p_want)
-            for k, v in part.items():
-                state[k][todo] = v
-            s0[todo], idx[todo], resume[todo], status[todo], want[todo] = p_s0, p_idx, p_res, p_status, p_want
-            rnd += 1
+        with self._lock:
+            if self._blocks is None:
+                self._blocks = _BlockPool(self.shape, self.block, self.dtype, self.memory_bytes)
+            blocks = self._blocks
+            first = True
+            while (todo := np.flatnonzero(status == NEEDS_CHUNK)).size:
+                if not first:  # read the blocks the stopped rays wait for
+                    self.blocks_read += blocks.fetch(want[todo], self._read)
+                first = False
+                part = {k: np.ascontiguousarray(v[todo]) for k, v in state.items()}
+                p_s0, p_idx, p_res = s0[todo], idx[todo], resume[todo]
+                p_status, p_want = np.empty(len(todo), np.int64), np.zeros((len(todo), 3), np.int64)
+                march(blocks.pool, blocks.slots, self.block, dims, self.voxel_um, self.iso, ids[todo], float(n_wall),
+                      float(n_poly), int(max_events), bool(fresnel), np.uint64(seed), part["position"],
+                      part["direction"], part["medium"], part["events"], part["path"], part["cells"],
+                      part["flat_normals"], p_s0, p_idx, p_res, p_status, p_want)
+                for k, v in part.items():
+                    state[k][todo] = v
+                s0[todo], idx[todo], resume[todo], status[todo], want[todo] = p_s0, p_idx, p_res, p_status, p_want
         return {"position": state["position"], "direction": state["direction"], "status": status,
                 "events": state["events"], "path": state["path"], "medium": state["medium"],
                 "cells": state["cells"], "flat_normals": state["flat_normals"]}
+
+
+class _BlockPool:
+    """The blocks of a volume in memory: ``pool[slot]`` holds the block ``held[slot]`` (its voxels from
+    block·b, B + 1 a side, clamped to the volume) and ``slots[b]`` its slot or -1; at most
+    ``memory_bytes`` of them, the least recently wanted giving way."""
+
+    def __init__(self, shape, block: int, dtype, memory_bytes: int):
+        self.shape, self.block = shape, block
+        grid = tuple(-(-s // block) for s in shape)
+        self.slots = np.full(grid, -1, np.int64)
+        side = block + 1
+        capacity = max(1, min(math.prod(grid), memory_bytes // (side ** 3 * dtype.itemsize)))
+        self.pool = np.zeros((capacity, side, side, side), dtype)
+        self.held = [None] * capacity
+        self.last = np.full(capacity, -1, np.int64)  # when each slot was last wanted
+        self.clock = 0
+
+    def fetch(self, wanted: np.ndarray, read) -> int:
+        """Read the blocks ``wanted`` (rows of block indices, one per waiting ray) not in the pool, the
+        most wanted first, as far as the slots not wanted now allow, with ``read(region, first)``;
+        returns how many were read."""
+        self.clock += 1
+        keys, counts = np.unique(wanted, axis=0, return_counts=True)
+        have = self.slots[tuple(keys.T)]
+        self.last[have[have >= 0]] = self.clock
+        missing = [tuple(int(v) for v in keys[q]) for q in np.argsort(-counts, kind="stable") if have[q] < 0]
+        free = [int(q) for q in np.argsort(self.last, kind="stable") if self.last[q] < self.clock]
+        side = self.block + 1
+        for key, slot in zip(missing, free):
+            if self.held[slot] is not None:
+                self.slots[self.held[slot]] = -1
+            first = tuple(b * self.block for b in key)
+            data = read(tuple(slice(f, min(f + side, s)) for f, s in zip(first, self.shape)), first)
+            self.pool[(slot,) + tuple(slice(0, m) for m in data.shape)] = data
+            self.slots[key], self.held[slot], self.last[slot] = slot, key, self.clock
+        return min(len(missing), len(free))
