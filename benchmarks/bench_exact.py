@@ -26,6 +26,7 @@ import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -57,6 +58,18 @@ def _compile(method):
     trace(m, square_beam(4, 10.0, (5e4, 5e4), seed=1), Optics(1.53, 1.52), s)
 
 
+def _timed(f, times: list):
+    """``f`` appending the seconds of each call to ``times`` (list.append is atomic: tiles and regions
+    are built on several threads)."""
+    def timed(*a, **k):
+        t0 = time.perf_counter()
+        try:
+            return f(*a, **k)
+        finally:
+            times.append(time.perf_counter() - t0)
+    return timed
+
+
 @_part("per_interface")
 def per_interface(method: str) -> dict:
     wood_medium, square_beam, Optics, settings_for, trace, build_params = _setup()
@@ -64,13 +77,25 @@ def per_interface(method: str) -> dict:
     s = settings_for(method)
     beam = square_beam(200, 150.0, seed=1)
     out = {"method": method, "rays": 200, "thickness_mm": 0.25}
+    built = []
+    if method == "exact":  # the regions' share of the time, apart from the march's
+        import pipeline.optics.wood_surface as ws
+        ws.region_context = _timed(ws.region_context, built)
     for phase in ("cold", "warm"):
         m = wood_medium(build_params("birch"), seed=1, thickness_um=250.0, voxel_um=0.5, settings=s)
+        built.clear()
         t0 = time.perf_counter()
         r = trace(m, beam, Optics(1.53, 1.52), s)
         dt = time.perf_counter() - t0
-        out[phase] = {"seconds": dt, "interfaces": int(r.events.sum()),
-                      "us_per_interface": 1e6 * dt / max(1, int(r.events.sum()))}
+        ev = max(1, int(r.events.sum()))
+        out[phase] = {"seconds": dt, "interfaces": ev, "us_per_interface": 1e6 * dt / ev}
+        if method == "exact":
+            n = sum(m.evaluations.values())
+            out[phase].update({
+                "region_seconds": sum(built), "regions": len(built),
+                "us_per_interface_march": 1e6 * (dt - sum(built)) / ev, "evaluations_per_interface": n / ev,
+                "ns_per_evaluation": 1e9 * (dt - sum(built)) / n,
+                "evaluations_by_purpose_per_interface": {k: v / ev for k, v in m.evaluations.items()}})
     return out
 
 
@@ -80,29 +105,11 @@ def lazy(_: str) -> dict:
     wood_medium, square_beam, Optics, settings_for, trace, build_params = _setup()
     _compile("exact")
     s = settings_for("exact")
-    built = []
-    original = region.region_context
-    tiles = []
+    built, tiles = [], []
     import pipeline.microstructure.model as model
-    tile_kernel = model.distortion_tile
-
-    def timed(*a, **k):
-        t0 = time.perf_counter()
-        try:
-            return original(*a, **k)
-        finally:
-            built.append(time.perf_counter() - t0)
-
-    def timed_tile(*a):
-        t0 = time.perf_counter()
-        try:
-            return tile_kernel(*a)
-        finally:
-            tiles.append(time.perf_counter() - t0)  # list.append is atomic: tiles run on several threads
-
     import pipeline.optics.wood_surface as ws
-    ws.region_context = timed
-    model.distortion_tile = timed_tile
+    ws.region_context = _timed(region.region_context, built)
+    model.distortion_tile = _timed(model.distortion_tile, tiles)
     m = wood_medium(build_params("birch"), seed=1, thickness_um=1500.0, voxel_um=0.5, settings=s, threads=2)
     t0, c0 = time.perf_counter(), time.process_time()
     r = trace(m, square_beam(1000, 150.0, seed=1), Optics(1.53, 1.52), s)
@@ -115,6 +122,7 @@ def lazy(_: str) -> dict:
             "tile_seconds_summed": sum(tiles),
             "regions": len(built), "interfaces": ev, "us_per_interface_wall": 1e6 * dt / ev,
             "evaluations_per_interface": float(r.extras["evaluations"].sum() / ev),
+            "evaluations_by_purpose_per_interface": {k: v / ev for k, v in m.evaluations.items()},
             "surfaces_passed_per_ray": float(r.extras["passes"].mean()),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "voxels_generated": 0}
 
@@ -187,6 +195,7 @@ def main():
     ap.add_argument("--out", default="results/bench.json")
     ap.add_argument("--part")
     ap.add_argument("--method", default="exact")
+    ap.add_argument("--only", help="comma-separated parts to run again, the others kept from --out")
     args = ap.parse_args()
     if args.part:  # one part, in this (fresh) process
         print(json.dumps(SNIPPETS[args.part](args.method)))
@@ -198,9 +207,17 @@ def main():
                              capture_output=True, text=True).stdout
         return json.loads(out.strip().splitlines()[-1])
 
-    result = {"per_interface": [fresh("per_interface", m) for m in ("exact", "fast", "accurate")],
-              "lazy_1_5mm": fresh("lazy_1_5mm"), "lazy_1_5mm_accurate": fresh("lazy_1_5mm_voxels", "accurate"),
-              "refinement": fresh("refinement"), "lattices": fresh("lattices")}
+    parts = {"per_interface": lambda: [fresh("per_interface", m) for m in ("exact", "fast", "accurate")],
+             "lazy_1_5mm": lambda: fresh("lazy_1_5mm"),
+             "lazy_1_5mm_accurate": lambda: fresh("lazy_1_5mm_voxels", "accurate"),
+             "refinement": lambda: fresh("refinement"), "lattices": lambda: fresh("lattices")}
+    only = args.only.split(",") if args.only else list(parts)
+    unknown = sorted(set(only) - set(parts))
+    if unknown:
+        ap.error(f"`--only` must name parts among {', '.join(parts)}, got {', '.join(unknown)}")
+    path = Path(args.out)
+    result = json.loads(path.read_text()).get("exact", {}) if path.exists() and args.only else {}
+    result.update({name: parts[name]() for name in only})
     write_section(args.out, "exact", result)
 
 

@@ -140,6 +140,13 @@ def render(doc: dict, scans: list | None = None) -> str:
         for r in e["per_interface"]:
             md.append(f"| {r['method']} | {r['cold']['interfaces']} | {r['cold']['us_per_interface']:.1f} | "
                       f"{r['warm']['us_per_interface']:.1f} |")
+        w = next((r["warm"] for r in e["per_interface"] if r["method"] == "exact"), {})
+        if "evaluations_by_purpose_per_interface" in w:
+            md += ["", f"Where `exact`'s warm time goes (its row above): {w['us_per_interface_march']:.1f} of its "
+                   f"{w['us_per_interface']:.1f} µs an interface in the march, the rest building its {w['regions']} "
+                   f"regions; {w['evaluations_per_interface']:.1f} point evaluations an interface, "
+                   f"{w['ns_per_evaluation']:.0f} ns each, by purpose: " + _purposes(w["evaluations_by_purpose_per_interface"])
+                   + " (docs/performance.md)."]
         z = e["lazy_1_5mm"]
         md += ["", f"1000 rays through 1.5 mm of birch with `exact`, cold, {z['threads']} threads: "
                f"{z['seconds']:.2f} s ({z['cpu_seconds']:.1f} CPU-s), of which {z['seconds_first_region']:.2f} s "
@@ -172,6 +179,20 @@ def render(doc: dict, scans: list | None = None) -> str:
                           f"{r['rays_within_1e-9_rad']} | {r['rays_same_interfaces']} |")
     else:
         md.append("Not run (`make bench-exact`).")
+    k = doc.get("study_census")
+    if k:
+        t = k["total"]
+        ev = max(1, t["interfaces"])
+        md += ["", f"Table 1 {', '.join(Path(x).stem for x in k['studies'])} at {k['scale']} scale with `exact` "
+               f"(`make bench-census`: counted inside the {k['workers']} workers of a local cluster, fresh cache, "
+               f"kernels compiled): {k['wall_s']:.0f} s on the wall clock; summed over the workers, "
+               f"{t['march_s']:.0f} s in the march and {t['region_s']:.0f} s building {t['regions']:,} regions, of which "
+               f"{t['tile_s']:.0f} s computing {t['tiles_built']:,} distortion tiles ({t['tiles_built_again']:.0f} of "
+               f"them built before on the same worker); {t['interfaces']:,} interfaces, "
+               f"{1e6 * t['march_s'] / ev:.1f} µs each in the march, "
+               f"{sum(v for n, v in t.items() if n.startswith('evaluations_')) / ev:.1f} evaluations each, by purpose: "
+               + _purposes({n[len('evaluations_'):]: v / ev for n, v in t.items() if n.startswith("evaluations_")})
+               + "."]
     c = _get(doc, "camera", "figure5")
     md += ["", "## Camera (Figure 5)", ""]
     if c:
@@ -211,6 +232,17 @@ def render(doc: dict, scans: list | None = None) -> str:
     else:
         md.append("Not run (`make bench-wave`).")
     return "\n".join(md) + "\n"
+
+
+_PURPOSE_WORDS = {"step": "a step's end", "root": "regula falsi on a crossing", "normal": "the normal",
+                  "lattice_guess": "the lattice points guessed", "lattice_bisection": "the lattice bisection",
+                  "regime_root": "cutting a regime step short", "start": "a segment's start"}
+
+
+def _purposes(per_interface: dict) -> str:
+    """Evaluations an interface by purpose, largest first, in words."""
+    items = sorted(per_interface.items(), key=lambda kv: -kv[1])
+    return ", ".join(f"{_PURPOSE_WORDS.get(k, k)} {v:.1f}" for k, v in items)
 
 
 def main() -> None:

@@ -355,3 +355,40 @@ def test_generated_wood_with_exact_reads_no_voxels():
     res = trace(medium, square_beam(5, 50.0, seed=1), Optics(1.53, 1.52), EXACT)
     assert res.diagnostics == {} and (res.extras["evaluations"] > 0).all()
     assert not set(res.extras) & set(VOXEL_COUNTS)  # the voxel backend's counts are its own
+
+
+def test_the_evaluations_by_purpose_add_up_to_the_rays_own_counts():
+    # A margin wide enough that no ray leaves its region: no evaluation is done twice, so the
+    # march's counts by purpose sum to the per-ray counts; each normal takes six differences
+    # (seven where one side is one-sided), each interface one normal.
+    medium = _birch(40.0, margin_um=200.0)
+    res = trace(medium, square_beam(40, 50.0, seed=4), Optics(1.53, 1.52), EXACT)
+    counts = dict(medium.evaluations)
+    assert medium.left == 0 and res.events.sum() > 200
+    assert sum(counts.values()) == res.extras["evaluations"].sum()
+    assert counts["start"] == 40 and counts["step"] > res.events.sum()
+    assert 6 * res.events.sum() <= counts["normal"] <= 7 * (res.events.sum() + res.extras["passes"].sum())
+    again = trace(medium, square_beam(40, 50.0, seed=4), Optics(1.53, 1.52), EXACT)
+    assert np.array_equal(again.direction, res.direction)
+    assert medium.evaluations == {k: 2 * v for k, v in counts.items()}  # they add up over traces
+
+
+def test_memos_kept_between_traces_change_no_ray():
+    # A trace's memos (control values, fibre cells, ray groups' spans) are kept for the next trace of
+    # the same parameters in the process: cold, warmed by the same wood, or after a wood of other
+    # fibre lengths and ray groups (whose cells a shared memo would hand over), the rays are the same.
+    from pipeline.optics import wood_surface as ws
+    # Oblique along L, so that the rays meet fibre ends and ray groups' ends.
+    beam, optics = square_beam(30, 60.0, seed=6, direction=(0.1, 1.0, 1.0)), Optics(1.53, 1.52)
+    other = build_params("birch", overrides={"fibre_length_um": 120.0, "fibre_length_sd_um": 30.0,
+                                             "ray_group_cells": 2.0})
+    ws._MEMOS.clear()
+    cold = trace(_birch(), beam, optics, EXACT)
+    warm = trace(_birch(), beam, optics, EXACT)
+    after = trace(WoodSurface(other, thickness_um=60.0, seed=1), beam, optics, EXACT)
+    assert len(ws._MEMOS) == 2  # one list of free memos per parameters
+    ws._MEMOS.clear()
+    alone = trace(WoodSurface(other, thickness_um=60.0, seed=1), beam, optics, EXACT)
+    assert cold.events.sum() > 100 and not np.array_equal(cold.direction, alone.direction)
+    for a, b in ((cold, warm), (alone, after)):
+        assert np.array_equal(a.direction, b.direction) and np.array_equal(a.events, b.events)

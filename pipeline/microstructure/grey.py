@@ -80,6 +80,27 @@ def degrade(scan: np.ndarray, voxel_um: float, *, blur_um: float = 0.0, noise: f
     return out
 
 
+def gaussian_part(read, lo, hi, shape, sigma: float, dtype) -> np.ndarray:
+    """Voxels [lo, hi) of a volume of ``shape`` filtered by a Gaussian of ``sigma`` voxels, as the
+    same part of the whole volume filtered (scipy's ``gaussian_filter``, mode "nearest"): read with
+    the halo the kernel reaches (scipy's radius, ``int(TRUNCATE·σ + 0.5)``, clipped to the volume)
+    by ``read(wide_lo, wide_hi)`` -> array in any data type, filtered in ``dtype``, cut to [lo, hi)."""
+    from scipy.ndimage import gaussian_filter
+
+    halo = int(TRUNCATE * sigma + 0.5)
+    wlo = [max(a - halo, 0) for a in lo]
+    whi = [min(b + halo, n) for b, n in zip(hi, shape)]
+    part = gaussian_filter(np.asarray(read(wlo, whi)).astype(dtype), sigma=sigma, mode="nearest",
+                           truncate=TRUNCATE)
+    return np.ascontiguousarray(part[tuple(slice(a - w, b - w) for a, b, w in zip(lo, hi, wlo))])
+
+
+def full_region(region) -> tuple:
+    """An index of a 3-D array as a tuple of three entries (missing trailing axes: whole)."""
+    region = region if isinstance(region, tuple) else (region,)
+    return region + (slice(None),) * (3 - len(region))
+
+
 def _check_degradation(blur_um, noise) -> None:
     for name, v in (("blur_um", blur_um), ("noise", noise)):
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
@@ -124,17 +145,13 @@ class LazyGreyScan:
         t0 = time.process_time()
         lo = [k * TILE for k in key]
         hi = [min(a + TILE, n) for a, n in zip(lo, self.shape)]
-        # The blur's halo: what its kernel reaches (scipy's radius), inside the scan.
-        halo = int(TRUNCATE * self.blur_um / self.grid.voxel_um + 0.5) if self.blur_um > 0 else 0
-        glo = [max(a - halo, 0) for a in lo]
-        ghi = [min(b + halo, n) for b, n in zip(hi, self.shape)]
-        part = _clean(self.params, self.fine, self.s, self.seed, glo, tuple(b - a for a, b in zip(glo, ghi)))
-        if self.blur_um > 0:
-            from scipy.ndimage import gaussian_filter
 
-            part = gaussian_filter(part, sigma=self.blur_um / self.grid.voxel_um, mode="nearest",
-                                   truncate=TRUNCATE).astype(np.float32)
-        part = np.ascontiguousarray(part[tuple(slice(a - g, b - g) for a, b, g in zip(lo, hi, glo))])
+        def clean(a, b):
+            return _clean(self.params, self.fine, self.s, self.seed, a, tuple(y - x for x, y in zip(a, b)))
+        if self.blur_um > 0:
+            part = gaussian_part(clean, lo, hi, self.shape, self.blur_um / self.grid.voxel_um, np.float32)
+        else:
+            part = clean(lo, hi)
         if self.noise > 0:
             _add_noise(part, self.noise, np.uint64(self.noise_seed), *lo)
         self.tiles.put(key, part, part.nbytes)
@@ -143,8 +160,7 @@ class LazyGreyScan:
         return part
 
     def __getitem__(self, region) -> np.ndarray:
-        region = region if isinstance(region, tuple) else (region,)
-        region = region + (slice(None),) * (3 - len(region))
+        region = full_region(region)
         spans = [sl.indices(n) for sl, n in zip(region, self.shape)]
         lo = [a for a, _, _ in spans]
         hi = [max(a, b) for a, b, _ in spans]

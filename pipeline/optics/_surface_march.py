@@ -38,12 +38,21 @@ PROBE = 1024.0  # lattice points (about 1e-9 µm) probed past a root where g and
 OVERSHOOT = 1.25  # a secant step towards a surface goes this far past the secant's root, checked at its end
 LATTICE = 2.0 ** -40  # [µm] crossings land on this lattice along a segment (~1e-12 µm)
 ROWS = MAX_PRIMS * N_COLS
-WORK = 3 * ROWS + 6 * 3 + 5 * 5  # the march's work arrays: three row tables, six vectors, five keys
+# What each point evaluation of the march was for, counted in its work buffer (docs/performance.md):
+# a segment's first point, a step's end, cutting a regime step short, regula falsi on a crossing,
+# the lattice point guessed from its root, the lattice bisection where the guess failed, the normal.
+PURPOSES = ("start", "step", "regime_root", "root", "lattice_guess", "lattice_bisection", "normal")
+COUNTS = 3 * ROWS + 6 * 3 + 5 * 5  # after three row tables, six vectors and five keys: the counts
+WORK = COUNTS + len(PURPOSES)
 
 
 def new_work() -> np.ndarray:
-    """The march's work arrays, one buffer per thread; the caller owns it while the march runs."""
-    return np.empty(WORK)
+    """The march's work arrays, one buffer per thread; the caller owns it while the march runs.
+    Its evaluations by purpose (:data:`PURPOSES`, from :data:`COUNTS` on) start at zero and add up
+    over the marches it serves."""
+    work = np.empty(WORK)
+    work[COUNTS:] = 0.0
+    return work
 
 
 @njit(inline="always", cache=True, nogil=True)
@@ -190,6 +199,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     # (an atomic add and a call wherever one is passed on).
     ctx = borrowed(ctx)
     cache = borrowed(cache)
+    cnt = carve(work, COUNTS, (len(PURPOSES),))
     P = carve(work, 0, (MAX_PRIMS, N_COLS))
     Pa = carve(work, ROWS, (MAX_PRIMS, N_COLS))
     Pb = carve(work, 2 * ROWS, (MAX_PRIMS, N_COLS))
@@ -243,6 +253,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
         ph0, n = surface_at(X[0], X[1], X[2], lq, ctx, P, cache, every)
         med = np.uint8(medium_out[r]) if again else ph0
         ne += 1
+        cnt[0] += 1.0
         if ph0 == 255:
             st = NEEDS_REGION
         t_face = _face(X, d, thickness)
@@ -256,6 +267,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             if not have:
                 ph, n = surface_at(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], lq, ctx, P, cache, every)
                 ne += 1
+                cnt[1] += 1.0
                 if ph == 255:
                     st = NEEDS_REGION
                     break
@@ -326,6 +338,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             phb, nb = surface_at(X[0] + s_end * d[0], X[1] + s_end * d[1], X[2] + s_end * d[2], lq, ctx, Pb, cache,
                                   every)
             ne += 1
+            cnt[1] += 1.0
             if phb == 255:
                 # The point the step needs is the one the next region must hold: a step inside a
                 # regime surface with nothing else listed may reach for the far face.
@@ -342,6 +355,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                         ok, lo, phb, nb, k = _before_root(X, d, s, s_end, g_a, Pb[i, 5], key, lq, ctx, Pa, Pb, cache,
                                                            every, tol)
                         ne += k
+                        cnt[2] += k
                         if ok:
                             s_end = lo
                             at_face = False
@@ -420,6 +434,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     phm, nm = surface_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache,
                                           key)
                     ne += 1
+                    cnt[3] += 1.0
                     i = find_row(P, nm, key)
                     if i < 0:
                         single = False
@@ -451,13 +466,17 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 khi = klo + 1.0
                 pl, na = _at_lattice(X, d, klo, lq, ctx, Pa, cache, every)
                 ne += 1
+                cnt[4] += 1.0
                 if pl == med:
                     ph_hi, nb = _at_lattice(X, d, khi, lq, ctx, Pb, cache, every)
                     ne += 1
+                    cnt[4] += 1.0
                     guessed = ph_hi != med
             if not guessed:
+                cnt[5] -= ne
                 klo, khi, na, nb, ne, passed = _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa,
                                                                 Pb, cache, every, ne)
+                cnt[5] += ne
                 if passed:
                     # The primitive switched without changing the phase (a lumen entered inside its
                     # end wall, the edge of a ray band between two walls): go past it, inside it
@@ -476,6 +495,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 base[q] = X[q] + hi * d[q]
             found, k = surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e)
             ne += k
+            cnt[6] += k
             ok = ok and found
             s2 = math.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2])
             if not ok or s2 == 0.0:  # no surface to refract on (none listed): counted, passed

@@ -19,6 +19,7 @@ import threading
 
 import numpy as np
 
+from ..microstructure.grey import gaussian_part
 from ..params import ParameterError
 from ._iso_march import march
 from .interface import NEEDS_CHUNK
@@ -26,7 +27,6 @@ from .interface import NEEDS_CHUNK
 OTSU_BINS = 256
 BLOCK = 32  # cells a side of a block of the volume read at a time
 MEMORY_BYTES = 512 * 2 ** 20  # the pool of blocks one trace holds at most
-SMOOTH_TRUNCATE = 4.0  # a smoothing kernel reaches this many σ (scipy's default)
 SAMPLE_VOXELS = 2 ** 24  # Otsu's threshold and the data's range from at most this many voxels
 _NATIVE = (np.uint8, np.uint16, np.float32, np.float64)
 
@@ -113,15 +113,10 @@ class IsoVolume:
         (``first``: the region's first voxel, to name a bad one), smoothed when ``smooth_um``
         (read with the halo the kernel reaches, so a block is that part of the whole volume smoothed)."""
         if self.smooth_um > 0 and all(r.step in (None, 1) for r in region):
-            from scipy.ndimage import gaussian_filter
-
             spans = [r.indices(n)[:2] for r, n in zip(region, self.shape)]
-            halo = int(SMOOTH_TRUNCATE * self.smooth_um / self.voxel_um + 0.5)
-            wide = [(max(a - halo, 0), min(b + halo, n)) for (a, b), n in zip(spans, self.shape)]
-            raw = self._raw(tuple(slice(a, b) for a, b in wide), [a for a, _ in wide])
-            out = gaussian_filter(raw.astype(self.dtype), sigma=self.smooth_um / self.voxel_um, mode="nearest",
-                                  truncate=SMOOTH_TRUNCATE)
-            return np.ascontiguousarray(out[tuple(slice(a - w, b - w) for (a, b), (w, _) in zip(spans, wide))])
+            return gaussian_part(lambda a, b: self._raw(tuple(slice(x, y) for x, y in zip(a, b)), a),
+                                 [a for a, _ in spans], [b for _, b in spans], self.shape,
+                                 self.smooth_um / self.voxel_um, self.dtype)
         return self._raw(region, first)
 
     def _raw(self, region, first) -> np.ndarray:

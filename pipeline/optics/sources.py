@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..microstructure.model import generate_block
+from ..microstructure.grey import full_region
 from ..microstructure.store import ByteLRU
 from ..params import Grid, ParameterError, WoodParams
 from ._packing import mask_segments, pack_chunks, read_box
@@ -209,8 +210,7 @@ class TiffStack:
         return data
 
     def __getitem__(self, region) -> np.ndarray:
-        region = region if isinstance(region, tuple) else (region,)
-        region = region + (slice(None),) * (3 - len(region))
+        region = full_region(region)
         if not all(isinstance(r, slice) for r in region):
             return np.asarray(self[:, :, :])[region]
         ks = range(*region[2].indices(self.shape[2]))

@@ -12,6 +12,7 @@ of it, so the result does not depend on the regions.
 
 from __future__ import annotations
 
+import collections
 import json
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -21,7 +22,7 @@ import numpy as np
 from ..microstructure.region import context_tuple, phases, region_context, warm_regions
 from ..microstructure.surface import new_cache
 from ..params import WoodParams
-from ._surface_march import HIT, NEEDS_REGION, TOL, march, new_work
+from ._surface_march import COUNTS, HIT, NEEDS_REGION, PURPOSES, TOL, march, new_work
 from .interface import SIDE
 
 # Internal steps [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are
@@ -32,7 +33,14 @@ NAMES = ("position", "direction", "status", "events", "path", "evaluations", "pa
 FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickness (the base margin)
 AHEAD_MAX = 8.0  # a ray that leaves a region goes on in one reaching 2, 4, then at most 8 base margins ahead
 MAX_ROUNDS = 10_000  # regions a beam may need before its rays count as lost (each goes 2-8 base margins further)
-_SHARED = threading.Lock()  # the region count and the free memos
+_SHARED = threading.Lock()  # the region count, the evaluation counts and the free memos
+# Memos and work buffers free for the next slice of any trace in this process, per wood parameters
+# (no more lists than MEMO_PARAMS, no more memos in one than the slices that ran at once).  A memo
+# holds functions of the parameters and of ids (a node's control values, a fibre's cell, a ray
+# group's span, each keyed by its seed too) and changes no result, only what it costs: a study's
+# next shard of the same parameters starts with what the last one's rays warmed, not a cold 3 MB memo.
+_MEMOS: collections.OrderedDict = collections.OrderedDict()
+MEMO_PARAMS = 4
 SLICES, SLICE_RAYS = 4, 16  # a group's rays in up to 4 slices a thread, of at least 16 rays
 
 
@@ -57,6 +65,8 @@ class WoodSurface:
         self.margin_um = FIRST_MARGIN_UM + 0.05 * self.thickness_um if margin_um is None else float(margin_um)
         self.left = 0  # times a ray left its region and went on in another
         self.regions = 0  # region contexts built (each widening counts)
+        # point evaluations of the traces so far, by what each was for (_surface_march.PURPOSES)
+        self.evaluations = dict.fromkeys(PURPOSES, 0)
         self.threads = max(1, int(threads))  # slices of a beam traced side by side
 
     @staticmethod
@@ -99,8 +109,7 @@ class WoodSurface:
             groups.append((todo[m], (r, l, (max(t[0], 0.0), min(t[1], self.thickness_um)))))
         return groups
 
-    def _round(self, groups, start, heading, ids, out, skips, stop, log, resume, log_events, optics,
-               memos) -> list:
+    def _round(self, groups, start, heading, ids, out, skips, stop, log, resume, log_events, optics) -> list:
         """Trace each group (rays, region box) of a round in its region; the rays of each that left it.
 
         Rays are independent and a ray's numbers do not depend on its region, so the work is cut
@@ -109,9 +118,9 @@ class WoodSurface:
         before) with all their regions' tiles computed at once, then their slices, largest
         groups first, on the threads, each region built by the first slice that needs it and let
         go after its last.  Slices of SLICE_RAYS or more rays, several a thread, so that threads
-        finish together; a slice takes a memo and work buffers from ``memos`` (those of slices
-        done before, on any thread) and gives them back (a memo changes no result, only what it
-        costs)."""
+        finish together; a slice takes a memo and work buffers from :data:`_MEMOS` (those of slices
+        done before, on any thread, in any trace) and gives them back with its evaluations counted
+        (a memo changes no result, only what it costs)."""
         if len(groups) > 1:
             warm_regions(self.params, self.seed, self.thickness_um, [box for _, box in groups], self.threads)
         work = []  # per group: rays, box, result arrays, [context, slices left], lock
@@ -134,13 +143,20 @@ class WoodSurface:
                 ctx = held[0]
             sel = todo[lo:hi]
             with _SHARED:
-                memo = memos.pop() if memos else (new_cache(), new_work())
+                free = _MEMOS.setdefault(self.token[1], [])
+                _MEMOS.move_to_end(self.token[1])
+                while len(_MEMOS) > MEMO_PARAMS:
+                    _MEMOS.popitem(last=False)
+                memo = free.pop() if free else (new_cache(), new_work())
             march(start[sel], heading[sel], ids[sel], self.thickness_um, *optics, ctx,
                   self.hit, self.tol, self.h_grad, self.step_scale, *(a[lo:hi] for a in res[:8]),
                   res[10][lo:hi] if log_events else res[10], memo[0], resume[sel],
                   res[8][lo:hi], res[9][lo:hi], memo[1])
             with _SHARED:
-                memos.append(memo)  # for the next slice on any thread: no more memos than threads
+                for name, v in zip(PURPOSES, memo[1][COUNTS:]):
+                    self.evaluations[name] += int(v)
+                memo[1][COUNTS:] = 0.0
+                free.append(memo)  # for the next slice on any thread: no more memos than threads
             with lock:
                 held[1] -= 1
                 if held[1] == 0:
@@ -188,11 +204,9 @@ class WoodSurface:
         ahead = np.full(n, base)  # how far a ray's next region reaches along its heading
         groups = [(np.arange(n), self._bounds(pos0, base))]
         rounds = 0
-        memos = []  # memos of this wood and work buffers free for the next slice (at most one a thread)
         while groups:
             left = self._round(groups, start, heading, ids, out, skips, stop, log, resume, log_events,
-                               (float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed)),
-                               memos)
+                               (float(n_wall), float(n_poly), int(max_events), bool(fresnel), np.uint64(seed)))
             todo = np.concatenate(left)
             if self.r_bounds_um is not None and todo.size:
                 lo, hi = self.r_bounds_um
