@@ -402,7 +402,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             single = False
             j = -1
             g_lo = np.nan
-            if s_end - s <= other:
+            # The step as taken, not s_end - s: when the step was the others' clearance itself, that
+            # difference may round one ulp above it, and the crossing was bisected over the whole step
+            # (about 40 evaluations, on 4 % of crossings) for want of the switching primitive.
+            if step <= other:
                 for cand in range(2):
                     kk = key if cand == 0 else skip
                     if kk[0] <= 0.0 or (cand == 0 and a < 0):
