@@ -52,3 +52,51 @@ def test_numba_uses_the_keyed_directory(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     numba_dir, env_dir = out.stdout.split()
     assert numba_dir == env_dir == str(tmp_path / "twray" / "numba" / kc.sources_key())
+
+
+
+# Traces of every kind of generated wood and of a lattice, with `exact` and a voxel method, and the
+# generator's blocks, in a fresh interpreter; it prints the kernel cache directory it used.
+_WORKLOAD = """
+import os
+from pipeline.microstructure.model import generate_block
+from pipeline.optics.media import wood_medium
+from pipeline.optics.rays import square_beam
+from pipeline.optics.references import reference
+from pipeline.optics.settings import Optics, settings_for
+from pipeline.optics.trace import trace
+from pipeline.params import build_params, make_grid
+for name in ("birch", "balsa"):
+    p = build_params(name)
+    for method in ("exact", "accurate"):
+        s = settings_for(method)
+        trace(wood_medium(p, seed=3, thickness_um=20.0, voxel_um=0.5, settings=s), square_beam(4, 10.0, seed=2),
+              Optics(1.53, 1.52), s)
+    generate_block(p, make_grid((20.0, 20.0, 20.0), 0.5, (0.0, 0.0, 0.0), p), (0, 0, 0), (8, 8, 8), seed=5)
+lat = reference("tubes-hex", pitch_um=14.5, wall_um=2.0, jitter=0.1).lattice(1)
+trace(lat.slab(20.0), square_beam(4, 10.0, seed=1), Optics(1.52, 1.49), settings_for("exact"))
+print(os.environ["NUMBA_CACHE_DIR"])
+"""
+
+
+def test_each_kernel_compiles_for_one_signature():
+    # A kernel typed twice compiles twice: an argument that is a literal (a `0`, a `False`) or a
+    # narrower integer where the caller's variable is first seen, or a read-only array where the
+    # other callers pass writable ones.  The wood's evaluation and the march's lattice bracket each
+    # cost about 20 s of a fresh install's compile so (docs/performance.md#compiling-the-kernels).
+    # Every signature compiled from these sources is a file of the keyed cache directory, whichever
+    # process compiled it (the workload compiles what is not there yet): only the march and the two
+    # kernels it passes its context to hold two, generated wood's and a lattice's.
+    import re
+    from collections import Counter
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    out = subprocess.run([sys.executable, "-c", _WORKLOAD], env=env, capture_output=True, text=True, check=True)
+    cache = Path(out.stdout.split()[-1])
+    assert cache.name == kc.sources_key()
+    counts = Counter(re.sub(r"-\d+\.py\d+\.\d+\.nbc$", "", p.name) for p in cache.rglob("*.nbc"))
+    assert counts["_surface_points._gradient"] == 1  # the names as this test reads them
+    many = {name: n for name, n in counts.items() if n > 1}
+    assert many == {"_surface_march.march": 2, "_surface_march._lattice_bracket": 2,
+                    "_surface_march._before_root": 2}, many

@@ -91,7 +91,7 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
     SR = np.empty((nR if not rotated else 0, nT), np.int64)
     last = np.empty((64, 7))
     n_last = -1
-    start = 0
+    start = np.int64(0)  # not the literal 0: _eval_bucket would compile for it too
     total = nR * nL
     while start < total:
         kb = key[order[start]]

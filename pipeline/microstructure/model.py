@@ -87,7 +87,8 @@ _tile_lock = threading.Lock()
 # the ±0.5 mm × 1.5 mm (R × T) that the rays of a Table 1 scene spread into.
 @functools.lru_cache(maxsize=2048)
 def _tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-    M = np.frombuffer(M_bytes, dtype=np.float64)
+    # Writable, as every other caller's: a read-only M would compile the kernels it reaches again.
+    M = np.frombuffer(M_bytes, dtype=np.float64).copy()
     out = np.empty((K.TILE + 1, K.TILE + 1, 2))
     stats = np.zeros(N_STATS, np.int64)
     box = np.array(large_range(M, a, b), np.int64)
@@ -104,7 +105,7 @@ LARGE_BLOCK = 128  # nodes per side of a block whose large-scale dipoles are fou
 @functools.lru_cache(maxsize=1024)
 def _large_block(seed: int, M_bytes: bytes, i: int, j: int) -> np.ndarray:
     """The large-scale dipoles of node block (i, j) (LARGE_BLOCK² nodes), by m then nn."""
-    M = np.frombuffer(M_bytes, dtype=np.float64)
+    M = np.frombuffer(M_bytes, dtype=np.float64).copy()
     out = np.empty((LARGE_BLOCK * LARGE_BLOCK, 2), np.int64)
     B = LARGE_BLOCK
     k = large_dipoles_in(np.uint64(seed), M, i * B, i * B + B - 1, j * B, j * B + B - 1, out)

@@ -130,7 +130,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
     # Vessel clusters with a member near the point, whole and in the generator's order (the
     # clusters listed in the point's bucket of ``vidx`` hold every such cluster).
     vsel = carve(WI, I_VSEL, (48,))
-    ns = 0
+    ns = np.int64(0)  # not the literal 0: each callee would compile for it too
     bshape, bptr, blist = vidx
     b = ((n_fl - vbox[0]) // VBUCKET) * bshape[1] + (w_fl - vbox[2]) // VBUCKET
     for e in range(bptr[b], bptr[b + 1]):
@@ -214,7 +214,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
 def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_, wanted, WF):
     """Inside a ray band: the generator's ray-cell phase, and the lumens and end walls near."""
     RC = carve(WF, F_CALLEE, (1, 6, 8))
-    ray_slice_tables(seed, M, L, ray, 1, RC)
+    ray_slice_tables(seed, M, L, ray, np.int64(1), RC)
     memo = carve(WF, F_CALLEE + 48, (8, 4))
     memo[:] = np.nan
     ph = ray_cell_phase(seed, M, pR, pT, np.uint64(0), ray, RC, memo)

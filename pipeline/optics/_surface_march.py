@@ -478,8 +478,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     guessed = ph_hi != med
             if not guessed:
                 cnt[5] -= ne
-                klo, khi, na, nb, ne, passed = _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa,
-                                                                Pb, cache, every, ne)
+                # med and single typed as they end up (int64, bool), not as first seen (uint8, the
+                # literal False): _lattice_bracket would compile for those too (20 s a fresh install).
+                klo, khi, na, nb, ne, passed = _lattice_bracket(X, d, s, s_end, lo, hi, np.int64(med), bool(single),
+                                                                lq, ctx, P, Pa, Pb, cache, every, ne)
                 cnt[5] += ne
                 if passed:
                     # The primitive switched without changing the phase (a lumen entered inside its
