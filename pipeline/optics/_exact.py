@@ -150,7 +150,7 @@ def _next_tube_crossing(geo, seed, px, py, dx, dy, medium, t_end, last_i, last_j
             return -1.0, 0.0, 0.0, 0, 0, -1
         # A real boundary: the phase just beyond differs from the ray's.
         q = best_t + HIT_EPS * 10.0
-        if phase_at(geo, TUBES, seed, px + q * dx, py + q * dy) != medium:
+        if phase_at(geo, np.int64(TUBES), seed, px + q * dx, py + q * dy) != medium:  # not a literal: one compile
             return best_t, bnx, bny, bi, bj, bc
         t_low = best_t
         bc = -1
@@ -285,13 +285,13 @@ def trace_lattice(geo, kind, seed, pos, dirs, n_wall, n_poly, thickness, max_eve
         pz = pos[r, 2]
         for q in range(3):
             d[q] = dirs[r, q]
-        med = phase_at(geo, kind, seed, px, py)
+        med = np.int64(phase_at(geo, kind, seed, px, py))  # its type after `1 - med`: callees compile once
         ev = 0
         st = 0
         path = 0.0
         li = np.int64(-(1 << 40))
         lj = np.int64(0)
-        lc = -1
+        lc = np.int64(-1)
         normals_out[r, 0] = 0.0
         normals_out[r, 1] = 0.0
         while st == 0:

@@ -160,7 +160,7 @@ def march(pool, slots, block, dims, h, iso, ray_ids, n_wall, n_poly, max_events,
         for q in range(3):
             X[q] = X_all[r, q]
             d[q] = D_all[r, q]
-        med = med_all[r]
+        med = np.int64(med_all[r])  # its type after `1 - med`: callees compile once
         ev = ev_all[r]
         length = length_all[r]
         ncell = cells_all[r]
