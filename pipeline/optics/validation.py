@@ -157,3 +157,47 @@ def compare_with_exact(lattice: Lattice, settings, *, voxel_um: float, thickness
             errs.append(fwhm(xv[k], MLE) / fwhm(xe[k], MLE) - 1.0)
         out["fwhm_r_error_ci"] = [float(np.quantile(errs, 0.025)), float(np.quantile(errs, 0.975))]
     return out
+
+
+def partial_volume_wall(normal, offset_um: float, shape: tuple[int, int, int], voxel_um: float,
+                        supersample: int = 4) -> np.ndarray:
+    """The scan a µCT records of the half-space n·x > ``offset_um`` [µm] of wall: each voxel's wall
+    fraction from ``supersample``³ points at the centres of its sub-voxels (as ``twray generate --grey``)."""
+    n = np.asarray(normal, dtype=np.float64)
+    axes = [(np.arange(k) + 0.5) * voxel_um for k in shape]
+    base = n[0] * axes[0][:, None, None] + n[1] * axes[1][None, :, None] + n[2] * axes[2][None, None, :]
+    sub = ((np.arange(supersample) + 0.5) / supersample - 0.5) * voxel_um
+    out = np.zeros(shape)
+    for i in sub:
+        for j in sub:
+            for k in sub:
+                out += base + (n[0] * i + n[1] * j + n[2] * k) > offset_um
+    return out / supersample ** 3
+
+
+def iso_wall_normals(alpha_deg: float, beta_deg: float, *, voxel_um: float, smooth_um: float = 0.0, rays: int = 1000,
+                     shape: tuple[int, int, int] = (64, 48, 64), n_wall: float = 1.6, n_poly: float = 1.5) -> dict:
+    """The normals `iso` refracts by on :func:`partial_volume_wall` of a wall whose normal is turned by
+    ``beta_deg`` in the R-T plane and tilted by ``alpha_deg`` towards L: rays along T cross it once
+    mid-volume, and n_wall·d_out − n_poly·d_in is along the normal each was refracted by.  Returns the
+    wall's normal and, per ray crossing once, that normal's angle from it and its parts along L and
+    in R-T [degree]."""
+    from .iso import IsoVolume
+    from .rays import square_beam
+    from .settings import Optics, settings_for
+    from .trace import trace
+
+    a, b = math.radians(alpha_deg), math.radians(beta_deg)
+    n = np.array([math.sin(b) * math.cos(a), math.cos(b) * math.cos(a), math.sin(a)])
+    centre = np.array(shape) * voxel_um / 2.0
+    vol = IsoVolume(partial_volume_wall(n, float(n @ centre), shape, voxel_um), voxel_um=voxel_um, iso=0.5,
+                    smooth_um=smooth_um)
+    beam = square_beam(rays, 0.5 * min(shape[0], shape[2]) * voxel_um, (centre[0], centre[2]), seed=7)
+    r = trace(vol, beam, Optics(n_wall, n_poly), settings_for("iso"))
+    one = r.events == 1
+    m = n_wall * r.direction[one] - n_poly * beam.unit_directions()[one]
+    m /= np.linalg.norm(m, axis=1)[:, None]
+    m *= np.sign(m @ n)[:, None]
+    return {"normal": n, "angle_deg": np.degrees(np.arccos(np.clip(m @ n, -1.0, 1.0))),
+            "along_l_deg": np.degrees(np.arcsin(np.clip(m[:, 2], -1.0, 1.0)) - a),
+            "across_deg": np.degrees(np.arctan2(m[:, 0], m[:, 1]) - b)}
