@@ -180,7 +180,7 @@ def distortion_tile(seed, M, a, b, out, stats, large, large_box):
                     continue
                 k3 = 2.0 + uniform(seed, _rng.DIPOLE, nn, m, 0)
                 k4 = (1.0 + uniform(seed, _rng.DIPOLE, nn, m, 1)) * amp
-                if near_ray(seed, M, m, 5):
+                if near_ray(seed, M, m, np.int64(5)):  # not a literal: near_ray compiles once
                     k4 *= 0.3
                 sign = 1.0 if uniform(seed, _rng.DIPOLE_SIGN, nn, m, 0) < 0.5 else -1.0
                 terms += _add_separable(uv, gR, gT, nn * c, m * c, DR[nn - n_lo], DT, anyR[nn - n_lo], anyT,

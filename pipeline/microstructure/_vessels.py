@@ -42,7 +42,7 @@ def vessel_proposal(seed, M, a, b, mem_n, mem_m):
         mem_n[i] = mem_n[i - 1] + dn
         mem_m[i] = mem_m[i - 1] + dm
     for i in range(size):
-        if near_ray(seed, M, mem_m[i], VRAY_CLEAR):
+        if near_ray(seed, M, mem_m[i], np.int64(VRAY_CLEAR)):  # not a literal: near_ray compiles once
             return 0
     return size
 
