@@ -15,6 +15,9 @@ Writes the "exact" section of results/bench.json:
 - lattices: 1000 rays through 300 µm of each reference lattice (ΔRI 0.03, warm, one core): µs per
   interface of `exact` (the march that traces the wood) and of the independent exact tracer, and
   how many exit directions agree to 1e-9 rad.
+- normals: µs per normal at the primitives listed at random points of 0.25 mm of birch and of
+  balsa (warm, one core), by the analytic gradient (one call) and by the central differences the
+  march takes (six evaluations of the primitive, step 1e-6 µm), and the angle between the two.
 Each part runs in a fresh process so that "cold" means it.
 """
 
@@ -185,6 +188,74 @@ def lattices(_: str) -> dict:
     return {"rays": 1000, "thickness_um": 300.0, "pitch_um": 14.5, "wall_um": 2.0, "jitter": 0.1, "rows": out}
 
 
+@_part("normals")
+def normals(_: str) -> dict:
+    from numba import njit
+
+    from pipeline.microstructure import region as R
+    from pipeline.microstructure.surface import MAX_PRIMS, N_COLS, P_REACH, evaluate_at, new_cache
+    from pipeline.microstructure.surface_gradient import gradient_at
+    from pipeline.params import build_params
+
+    @njit
+    def analytic(pts, keys, ctx, cache, out):
+        ok = 0
+        for i in range(pts.shape[0]):
+            ok += gradient_at(pts[i, 0], pts[i, 1], pts[i, 2], ctx, keys[i], cache, out[i])
+        return ok
+
+    @njit
+    def differences(pts, keys, ctx, Q, cache, h, out):
+        for i in range(pts.shape[0]):
+            for q in range(3):
+                g = np.zeros(2)
+                for j in range(2):
+                    x = pts[i].copy()
+                    x[q] += h if j == 0 else -h
+                    _, m = evaluate_at(x[0], x[1], x[2], 0.0, ctx, Q, cache, keys[i])
+                    for r in range(m):
+                        if (Q[r, 0] == keys[i, 0] and Q[r, 1] == keys[i, 1] and Q[r, 2] == keys[i, 2]
+                                and Q[r, 3] == keys[i, 3] and Q[r, 4] == keys[i, 4]):
+                            g[j] = Q[r, 5]
+                out[i, q] = (g[0] - g[1]) / (2.0 * h)
+
+    result = {}
+    for preset in ("birch", "balsa"):
+        p = build_params(preset)
+        ctx = R.context_tuple(R.region_context(p, 3, 250.0, (-60.0, 60.0), (-60.0, 60.0)))
+        rng = np.random.default_rng(2)
+        P = np.empty((MAX_PRIMS, N_COLS))
+        cache = new_cache()
+        pts, keys = [], []
+        for x in np.column_stack([rng.uniform(-50, 50, 3000), rng.uniform(1, 249, 3000), rng.uniform(-50, 50, 3000)]):
+            _, n = evaluate_at(x[0], x[1], x[2], 0.0, ctx, P, cache, np.zeros(5))
+            for row in P[:n]:
+                if row[0] != P_REACH and row[6] < 1e200:
+                    pts.append(x)
+                    keys.append(row[:5].copy())
+        pts, keys = np.array(pts), np.array(keys)
+        a = np.zeros((len(pts), 3))
+        d = np.zeros((len(pts), 3))
+        analytic(pts[:2], keys[:2], ctx, cache, a[:2])
+        differences(pts[:2], keys[:2], ctx, P, cache, 1e-6, d[:2])
+        ta, td = [], []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            analytic(pts, keys, ctx, cache, a)
+            ta.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            differences(pts, keys, ctx, P, cache, 1e-6, d)
+            td.append(time.perf_counter() - t0)
+        cos = np.sum(a * d, 1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(d, axis=1))
+        angle = np.arccos(np.clip(cos, -1.0, 1.0))
+        result[preset] = {"normals": len(pts), "analytic_us": round(1e6 * min(ta) / len(pts), 3),
+                          "differences_us": round(1e6 * min(td) / len(pts), 3),
+                          "speedup": round(min(td) / min(ta), 1),
+                          "angle_rad_median": float(np.median(angle)), "angle_rad_p99": float(np.quantile(angle, 0.99)),
+                          "angle_rad_max": float(angle.max())}
+    return result
+
+
 def _fwhm(res):
     from pipeline.summary import summarize
     return summarize(res, n_boot=2)["fwhm_r_deg"]
@@ -210,7 +281,8 @@ def main():
     parts = {"per_interface": lambda: [fresh("per_interface", m) for m in ("exact", "fast", "accurate")],
              "lazy_1_5mm": lambda: fresh("lazy_1_5mm"),
              "lazy_1_5mm_accurate": lambda: fresh("lazy_1_5mm_voxels", "accurate"),
-             "refinement": lambda: fresh("refinement"), "lattices": lambda: fresh("lattices")}
+             "refinement": lambda: fresh("refinement"), "lattices": lambda: fresh("lattices"),
+             "normals": lambda: fresh("normals")}
     only = args.only.split(",") if args.only else list(parts)
     unknown = sorted(set(only) - set(parts))
     if unknown:

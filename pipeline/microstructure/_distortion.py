@@ -224,14 +224,19 @@ def distortion_tile(seed, M, a, b, out, stats, large, large_box):
 
 
 @njit(inline="always", cache=True, error_model="numpy")
-def pull_back(patch, gi0, gj0, G, R, T):
-    """p1 = X − d(X), d bilinear on the global distortion grid (indices from global coords)."""
+def _grid_cell(G, R, T):
+    """The grid cell (ix, iy) holding (R, T) and the point's fractions (fx, fy) in it."""
     x = R / G
     y = T / G
     ix = math.floor(x)
     iy = math.floor(y)
-    fx = x - ix
-    fy = y - iy
+    return ix, iy, x - ix, y - iy
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def pull_back(patch, gi0, gj0, G, R, T):
+    """p1 = X − d(X), d bilinear on the global distortion grid (indices from global coords)."""
+    ix, iy, fx, fy = _grid_cell(G, R, T)
     i = np.uint64(np.int64(ix) - gi0)
     j = np.uint64(np.int64(iy) - gj0)
     i1 = i + np.uint64(1)
@@ -241,3 +246,17 @@ def pull_back(patch, gi0, gj0, G, R, T):
     dT = ((1.0 - fx) * ((1.0 - fy) * patch[i, j, 1] + fy * patch[i, j1, 1])
           + fx * ((1.0 - fy) * patch[i1, j, 1] + fy * patch[i1, j1, 1]))
     return R - dR, T - dT
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def pull_back_slopes(patch, gi0, gj0, G, R, T):
+    """∂(dR, dT)/∂(R, T) of the distortion d that :func:`pull_back` subtracts, in its bilinear cell:
+    (∂dR/∂R, ∂dR/∂T, ∂dT/∂R, ∂dT/∂T)."""
+    ix, iy, fx, fy = _grid_cell(G, R, T)
+    i = np.int64(ix) - gi0
+    j = np.int64(iy) - gj0
+    rx = ((1.0 - fy) * (patch[i + 1, j, 0] - patch[i, j, 0]) + fy * (patch[i + 1, j + 1, 0] - patch[i, j + 1, 0])) / G
+    ry = ((1.0 - fx) * (patch[i, j + 1, 0] - patch[i, j, 0]) + fx * (patch[i + 1, j + 1, 0] - patch[i + 1, j, 0])) / G
+    tx = ((1.0 - fy) * (patch[i + 1, j, 1] - patch[i, j, 1]) + fy * (patch[i + 1, j + 1, 1] - patch[i, j + 1, 1])) / G
+    ty = ((1.0 - fx) * (patch[i, j + 1, 1] - patch[i, j, 1]) + fx * (patch[i + 1, j + 1, 1] - patch[i + 1, j, 1])) / G
+    return rx, ry, tx, ty
