@@ -15,6 +15,10 @@ Writes the "exact" section of results/bench.json:
 - lattices: 1000 rays through 300 µm of each reference lattice (ΔRI 0.03, warm, one core): µs per
   interface of `exact` (the march that traces the wood) and of the independent exact tracer, and
   how many exit directions agree to 1e-9 rad.
+- per_interface_1mm: µs per interface of `exact` on 1 mm of birch (300 rays, ΔRI 0.01), warm, one
+  core, the measure of the goal table in results/BENCH.md;
+- whole_process: `twray trace --preset birch --thickness-mm 1 --rays 200` as whole processes with
+  `exact` and with `accurate` (kernels compiled by a first run of each, the second timed);
 - normals: µs per normal at the primitives listed at random points of 0.25 mm of birch and of
   balsa (warm, one core), by the analytic gradient (one call) and by the central differences the
   march takes (six evaluations of the primitive, step 1e-6 µm), and the angle between the two.
@@ -188,6 +192,45 @@ def lattices(_: str) -> dict:
     return {"rays": 1000, "thickness_um": 300.0, "pitch_um": 14.5, "wall_um": 2.0, "jitter": 0.1, "rows": out}
 
 
+@_part("per_interface_1mm")
+def per_interface_1mm(_: str) -> dict:
+    wood_medium, square_beam, Optics, settings_for, trace, build_params = _setup()
+    _compile("exact")
+    s = settings_for("exact")
+    beam = square_beam(300, 150.0, seed=1)
+    best = None
+    for _ in range(3):  # the first builds the regions and warms the memos; the best of the others
+        m = wood_medium(build_params("birch"), seed=1, thickness_um=1000.0, voxel_um=0.5, settings=s)
+        t0 = time.perf_counter()
+        r = trace(m, beam, Optics(1.50, 1.49), s)
+        dt = time.perf_counter() - t0
+        best = dt if best is None else min(best, dt)
+    ev = int(r.events.sum())
+    return {"rays": 300, "thickness_mm": 1.0, "delta_ri": 0.01, "interfaces": ev,
+            "us_per_interface": round(1e6 * best / ev, 2)}
+
+
+@_part("whole_process")
+def whole_process(_: str) -> dict:
+    import shutil
+    import tempfile
+    twray = shutil.which("twray") or str(Path(sys.executable).with_name("twray"))
+    out = {"command": "twray trace --preset birch --thickness-mm 1 --delta-ri 0.01 --rays 200 --quiet"}
+    with tempfile.TemporaryDirectory() as tmp:
+        for method in ("exact", "accurate"):
+            cmd = [twray, "trace", "--preset", "birch", "--thickness-mm", "1", "--delta-ri", "0.01", "--rays", "200",
+                   "--quiet", "--method", method, "--out", str(Path(tmp) / f"{method}.zarr")]
+            times = []
+            for _ in range(2):
+                shutil.rmtree(Path(tmp) / f"{method}.zarr", ignore_errors=True)
+                t0 = time.perf_counter()
+                subprocess.run(cmd, check=True, capture_output=True, cwd=tmp)
+                times.append(time.perf_counter() - t0)
+            out[f"{method}_s"] = round(times[-1], 2)
+    out["accurate_over_exact"] = round(out["accurate_s"] / out["exact_s"], 2)
+    return out
+
+
 @_part("normals")
 def normals(_: str) -> dict:
     from numba import njit
@@ -282,7 +325,8 @@ def main():
              "lazy_1_5mm": lambda: fresh("lazy_1_5mm"),
              "lazy_1_5mm_accurate": lambda: fresh("lazy_1_5mm_voxels", "accurate"),
              "refinement": lambda: fresh("refinement"), "lattices": lambda: fresh("lattices"),
-             "normals": lambda: fresh("normals")}
+             "normals": lambda: fresh("normals"), "per_interface_1mm": lambda: fresh("per_interface_1mm"),
+             "whole_process": lambda: fresh("whole_process")}
     only = args.only.split(",") if args.only else list(parts)
     unknown = sorted(set(only) - set(parts))
     if unknown:

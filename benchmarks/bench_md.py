@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 
 from pipeline import report_scans
+from pipeline.microstructure.model import TILE_BUDGET
 
 
 def _get(doc, *keys):
@@ -132,6 +133,7 @@ def render(doc: dict, scans: list | None = None) -> str:
     else:
         md.append("Not run (`make bench-study`).")
     e = doc.get("exact")
+    md += _goals(doc)
     md += ["", "## `exact` on generated wood", ""]
     if e:
         md += ["Birch 0.25 mm, 200 rays, ΔRI 0.01, one core; cold: no wood or distortion tile cached, kernels "
@@ -203,6 +205,13 @@ def render(doc: dict, scans: list | None = None) -> str:
                f"{sum(v for n, v in t.items() if n.startswith('evaluations_')) / ev:.1f} evaluations each, by purpose: "
                + _purposes({n[len('evaluations_'):]: v / ev for n, v in t.items() if n.startswith("evaluations_")})
                + "."]
+        w = k.get("per_worker", [])
+        if w and "wood_stretches" in w[0]:
+            md[-1] += (" The workers traced " + " and ".join(f"{x['woods']} woods in {x['wood_stretches']} stretches"
+                                                            for x in w)
+                       + " (a stretch: tiles built for one wood in a row; a worker keeps the wood it traces whole, "
+                       f"and the woods before it up to {k.get('tile_budget') or TILE_BUDGET} tiles, the least "
+                       "recently traced let go first).")
     c = _get(doc, "camera", "figure5")
     md += ["", "## Camera (Figure 5)", ""]
     if c:
@@ -254,6 +263,34 @@ def _purposes(per_interface: dict) -> str:
     items = sorted(per_interface.items(), key=lambda kv: -kv[1])
     return ", ".join(f"{_PURPOSE_WORDS.get(k, k)} {v:.1f}" for k, v in items)
 
+
+
+def _goals(doc: dict) -> list[str]:
+    """`exact`'s goals beside the latest measurement of each in bench.json ("not measured" where
+    no benchmark has recorded it)."""
+    e, st, cam, k = doc.get("exact", {}), doc.get("study", {}), doc.get("camera", {}), doc.get("study_census", {})
+
+    def get(section, *keys, scale=1.0, fmt="{:.1f}"):
+        v = _get(section, *keys)
+        return fmt.format(v * scale) if isinstance(v, (int, float)) else "not measured"
+
+    rows = [
+        ("µs an interface, warm, one core, 1 mm birch (`make bench-exact`, part `per_interface_1mm`)",
+         get(e, "per_interface_1mm", "us_per_interface", fmt="{:.2f}"), "≤ 1"),
+        ("study 1 at paper scale to its target, cold, 2 cores [s] (`make bench-census`, with its counters)",
+         get(k, "wall_s", fmt="{:.0f}"), "≤ 100"),
+        ("all of Table 1 at paper scale to its targets, cold [min] (`make bench-table1-paper`)",
+         get(st, "table1_paper", "cold_s", scale=1 / 60), "≤ 4"),
+        ("Figure 5, 200 samples a pixel, `exact`, cold [min]", get(cam, "figure5_exact", "wall_s", scale=1 / 60), "≤ 5"),
+        ("`twray trace` 1 mm, 200 rays, whole process, `accurate` ÷ `exact` (part `whole_process`)",
+         get(e, "whole_process", "accurate_over_exact", fmt="{:.1f}×"), "≥ 10×"),
+        ("`make table1` in a fresh clone, with installing [min]", get(st, "table1_fresh_clone", "seconds", scale=1 / 60),
+         "≤ 2"),
+    ]
+    md = ["", "## `exact`'s goals", "", "Each goal beside its latest measurement on this project's 2-core host "
+          "(cold: kernels compiled, nothing cached; docs/performance.md says where the time goes):", "",
+          "| measure | measured | goal |", "|---|---|---|"]
+    return md + [f"| {a} | {b} | {c} |" for a, b, c in rows]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -82,3 +82,33 @@ def test_the_pull_back_bound_holds_between_any_two_points_of_a_tile_and_is_nearl
             Q = np.array(pull_back(tile, a * _constants.TILE, b * _constants.TILE, G, q[0], q[1]))
             worst = max(worst, np.linalg.norm(P - Q) / np.linalg.norm(p - q))
         assert 1.0 + 0.5 * (bound - 1.0) < worst <= bound, (a, b, worst, bound)
+
+
+def test_a_woods_tiles_are_never_computed_twice_while_it_is_used_and_woods_are_let_go_whole(monkeypatch):
+    """A worker keeps every distortion tile of the wood it traces, however many (beyond the budget),
+    and lets whole woods go, least recently used first: a wood's tiles are computed once while its
+    shards run, and a tile computed again after its wood was let go is the same tile."""
+    from pipeline.microstructure import model
+
+    M = model_constants(build_params("birch")).tobytes()
+    computed = []
+    kernel = model.distortion_tile
+
+    def counted(seed, *args):
+        computed.append((int(seed), int(args[1]), int(args[2])))
+        return kernel(seed, *args)
+
+    monkeypatch.setattr(model, "distortion_tile", counted)
+    tiles = model._WoodTiles(budget=4)
+    first = {}
+    for _ in range(3):  # wood 1's shards: 6 tiles, over the budget of 4, each computed once
+        for a in range(6):
+            (tile, _), _ = tiles.get(1, M, a, 0)
+            first.setdefault(a, tile)
+    assert computed == [(1, a, 0) for a in range(6)] and tiles.held == 6
+    tiles.get(2, M, 0, 0)  # another wood: wood 1 is let go whole
+    assert tiles.held == 1 and list(tiles.woods) == [(2, M)]
+    (again, _), made = tiles.get(1, M, 3, 0)
+    assert made and np.array_equal(again, first[3])  # a tile is a pure function of its key
+    (_, _), made = tiles.get(2, M, 0, 0)
+    assert not made and tiles.held == 2  # within the budget both woods stay

@@ -7,6 +7,7 @@ of a voxel depend only on its global position, never on the box around it.
 
 from __future__ import annotations
 
+import collections
 import functools
 import math
 import threading
@@ -80,13 +81,54 @@ def tip_wall_angle_deg(p: WoodParams) -> float:
     return math.degrees(math.atan(lumen_half_width_um(p) / p.fibre_tip_um))
 
 
-_tile_lock = threading.Lock()
+TILE_BUDGET = 2048  # distortion tiles kept beside the wood in use (65² × 2 floats: ~140 MB)
 
 
-# 2048 tiles of 65² × 2 floats (~140 MB) hold the distortion of several woods over
-# the ±0.5 mm × 1.5 mm (R × T) that the rays of a Table 1 scene spread into.
-@functools.lru_cache(maxsize=2048)
-def _tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+class _WoodTiles:
+    """The distortion tiles a process has computed, kept by wood (a ply's seed and constants).
+
+    Whole woods are let go, least recently used first, once more than ``budget`` tiles are held,
+    but never the wood asked for last: while a worker traces one wood (its shards of every value
+    and study run in a row, docs/performance.md), none of its tiles is computed twice, however
+    many tiles it needs.  A tile is a pure function of its key, so what is kept changes no number.
+    """
+
+    def __init__(self, budget: int):
+        self.budget = budget
+        self.woods: collections.OrderedDict = collections.OrderedDict()
+        self.held = 0
+        self.lock = threading.Lock()
+
+    def get(self, seed: int, M_bytes: bytes, a: int, b: int) -> tuple[tuple[np.ndarray, np.ndarray], bool]:
+        """((tile, its counters), whether it was computed by this call)."""
+        wood = (seed, M_bytes)
+        with self.lock:
+            tiles = self.woods.setdefault(wood, {})
+            self.woods.move_to_end(wood)
+            found = tiles.get((a, b))
+        if found is not None:
+            return found, False
+        made = _compute_tile(seed, M_bytes, a, b)
+        with self.lock:
+            tiles = self.woods.setdefault(wood, {})
+            if (a, b) not in tiles:
+                tiles[(a, b)] = made
+                self.held += 1
+            while self.held > self.budget and len(self.woods) > 1 and next(iter(self.woods)) != wood:
+                _, gone = self.woods.popitem(last=False)
+                self.held -= len(gone)
+            return tiles[(a, b)], True
+
+    def cache_clear(self) -> None:
+        with self.lock:
+            self.woods.clear()
+            self.held = 0
+
+
+_TILES = _WoodTiles(TILE_BUDGET)
+
+
+def _compute_tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
     # Writable, as every other caller's: a read-only M would compile the kernels it reaches again.
     M = np.frombuffer(M_bytes, dtype=np.float64).copy()
     out = np.empty((K.TILE + 1, K.TILE + 1, 2))
@@ -97,6 +139,15 @@ def _tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.nda
     distortion_tile(np.uint64(seed), M, a, b, out, stats, large, box)
     out.setflags(write=False)
     return out, stats
+
+
+def _tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distortion tile (a, b) of the wood (seed, constants) and its counters, from the process's
+    tiles (:class:`_WoodTiles`)."""
+    return _TILES.get(seed, M_bytes, a, b)[0]
+
+
+_tile.cache_clear = _TILES.cache_clear
 
 
 LARGE_BLOCK = 128  # nodes per side of a block whose large-scale dipoles are found once
@@ -139,9 +190,8 @@ def _patch(seed, M, r_lo, r_hi, t_lo, t_hi, stats):
     key = M.tobytes()
     for a in range(a0, a1 + 1):
         for b in range(b0, b1 + 1):
-            hits = _tile.cache_info().hits
-            tile, tstats = _tile(int(seed), key, a, b)
-            if _tile.cache_info().hits == hits:
+            (tile, tstats), made = _TILES.get(int(seed), key, a, b)
+            if made:
                 stats += tstats
             i, j = (a - a0) * K.TILE, (b - b0) * K.TILE
             patch[i:i + K.TILE + 1, j:j + K.TILE + 1] = tile
