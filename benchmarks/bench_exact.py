@@ -236,7 +236,7 @@ def normals(_: str) -> dict:
     from numba import njit
 
     from pipeline.microstructure import region as R
-    from pipeline.microstructure.surface import MAX_PRIMS, N_COLS, P_REACH, evaluate_at, new_cache
+    from pipeline.microstructure.surface import MAX_PRIMS, N_COLS, P_REACH, evaluate_at, find_row, new_cache
     from pipeline.microstructure.surface_gradient import gradient_at
     from pipeline.params import build_params
 
@@ -256,10 +256,8 @@ def normals(_: str) -> dict:
                     x = pts[i].copy()
                     x[q] += h if j == 0 else -h
                     _, m = evaluate_at(x[0], x[1], x[2], 0.0, ctx, Q, cache, keys[i])
-                    for r in range(m):
-                        if (Q[r, 0] == keys[i, 0] and Q[r, 1] == keys[i, 1] and Q[r, 2] == keys[i, 2]
-                                and Q[r, 3] == keys[i, 3] and Q[r, 4] == keys[i, 4]):
-                            g[j] = Q[r, 5]
+                    r = find_row(Q, m, keys[i])
+                    g[j] = Q[r, 5] if r >= 0 else np.nan
                 out[i, q] = (g[0] - g[1]) / (2.0 * h)
 
     result = {}

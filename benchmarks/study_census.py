@@ -9,8 +9,8 @@ against that cluster in a fresh cache, and reads the counters back:
 
 Writes the "study_census" section of results/bench.json: per worker, the distortion tiles built,
 how many of them were built before on that worker (and how many other woods had tiles built in
-between), and the seconds in tiles, in regions (tiles
-included) and in the march; the command's wall time (kernels compiled beforehand by the caller).
+between), the stretches of woods, and the seconds in tiles, in regions (tiles included) and in
+the march; the command's wall time (kernels compiled beforehand by the caller).
 
 The counters are plain Python wrappers around whole kernel calls: they add microseconds to calls
 of milliseconds and change no number.

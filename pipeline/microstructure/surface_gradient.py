@@ -6,8 +6,9 @@ the point's local coordinates: the pulled-back R (``pR``), the squeezed T
 (``sT``) and L, through the primitive's own geometry at L (node splines, band
 tapers).  Those coordinates are themselves maps of the point in space: the
 ply's rotation, the bilinear pull-back of the distortion and the squeeze of the
-ray bands.  :func:`gradient` follows that chain once, at one point, with each
-map's derivative written next to the map it differentiates, instead of six
+ray bands.  :func:`gradient` follows that chain once, at one point (the
+pull-back's derivative is :func:`~pipeline.microstructure._distortion.pull_back_slopes`
+beside the map; the splines', tapers' and squeeze's are here), instead of six
 evaluations of the primitive for central differences.
 
 Every kind of row has one: fibre lumens (``P_LUMEN``), vessel outlines,
@@ -111,8 +112,9 @@ def _ellipse(out, dR, dT, aR, aT, cRs, cTs, aRs, aTs, uR, uT, uL, vR, vT, vL, eR
 @njit(**NOREF)
 def gradient(R, T, L, seed, M, ply, patch, gi0, gj0, vessels, nv, key, cache, out):
     """The gradient in space of primitive ``key`` (kind, a, b, c, d) of the ply at (R, T, L) [µm]
-    into ``out``; False (``out`` untouched) where this kind has no analytic gradient here or the
-    point is outside the ply's distortion grid.  The arguments are those of :func:`evaluate`."""
+    into ``out``; False (``out`` untouched) where that primitive has no surface at this point (a
+    lumen closed at L, a ray-cell row the point is not in) or the point is outside the ply's
+    distortion grid.  The arguments are those of :func:`evaluate`."""
     cs, sn, oR, oT, oL = ply[0], ply[1], ply[2], ply[3], ply[4]
     Rp = cs * R + sn * L + oR
     Lp = -sn * R + cs * L + oL
