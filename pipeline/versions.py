@@ -25,8 +25,11 @@ GENERATOR = STAGES["micro"]
 # One per tracing method: bump a method's when its rays change for the same inputs.
 #   exact 3: regime surfaces crossed on long steps; a few rays in a thousand part at a crossing
 #            where the phase flickers within rounding (1e-12 µm), and so differ after it.
+#   exact 4: the normal is the switching primitive's analytic gradient (it was six central
+#            differences); a crossing's primitive is sought wherever the step as taken was within the
+#            others' clearance.  Rays move at rounding (docs/performance.md).
 #   iso 1: a grey-level scan's trilinear iso-surface, crossings as roots of its cubics.
-TRACERS = {"paper": "7", "fast": "7", "accurate": "7", "exact": "3", "iso": "1"}
+TRACERS = {"paper": "7", "fast": "7", "accurate": "7", "exact": "4", "iso": "1"}
 
 # Cached camera images (2: entries verified, key and digest).
 CAMERA = "2"

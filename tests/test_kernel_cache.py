@@ -84,7 +84,7 @@ print(os.environ["NUMBA_CACHE_DIR"])
 # whatever the tests pass: a Python int seed, a Fortran-ordered array.)
 PACKAGE_ONLY = {
     "surface.evaluate": 1, "_surface_cells._polygon": 1, "_slice.vessel_walls": 1, "_slice._eval_bucket": 1,
-    "_ray_cells.ray_slice_tables": 1, "_distortion.distortion_tile": 1, "_surface_points._gradient": 1,
+    "_ray_cells.ray_slice_tables": 1, "_distortion.distortion_tile": 1,
     "_surface_march.march": 2, "_surface_march._lattice_bracket": 2, "_surface_march._before_root": 2,
 }
 

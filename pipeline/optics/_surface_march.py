@@ -11,8 +11,8 @@ primitive A (its negative set, convex in the pulled-back coordinates, meets a
 line in one interval) A may switch once, and the primitive crossed last is left
 out of the clearance (the ray is leaving it).  A step whose end is in the other phase brackets a crossing,
 refined by regula falsi on the switching primitive's g to ``tol``; its normal
-is the gradient of g (:func:`surface_normal`: for wood by central differences of step
-``h_grad``, for a lattice its circle's or line's own).  A clearance
+is the gradient of g (:func:`surface_normal`: for wood the analytic gradient of the
+primitive, for a lattice its circle's or line's own).  A clearance
 below ``hit`` means the ray stands on a surface: the phase is sampled
 ``2·hit`` ahead.
 """
@@ -173,7 +173,7 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, ca
 
 @njit(cache=True, nogil=True)
 def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fseed, ctx,
-               hit, tol, h_grad, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache,
+               hit, tol, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache,
                resume, skips, stop, work):
     """Trace rays from ``pos`` (N, 3) [µm] with unit ``dirs`` through the wood between T = 0 and
     T = ``thickness``; writes the exit point and direction, status, interfaces, path length [µm],
@@ -402,11 +402,9 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             single = False
             j = -1
             g_lo = np.nan
-            # (s_end - s may round one ulp above a step that was the others' clearance: those crossings,
-            # 4 % of them, are bisected over the whole step.  Comparing the step as taken saves ~2
-            # evaluations an interface but moved one interface in 25 million of Table 1's study 1: it
-            # waits for the next version of `exact`, docs/performance.md.)
-            if s_end - s <= other:
+            # The step as taken, not s_end - s: that may round one ulp above a step that was the
+            # others' clearance, and the phase would be bisected over the whole step.
+            if step <= other:
                 for cand in range(2):
                     kk = key if cand == 0 else skip
                     if kk[0] <= 0.0 or (cand == 0 and a < 0):
@@ -499,7 +497,12 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             ok = switched(Pa, na, Pb, nb, key)
             for q in range(3):
                 base[q] = X[q] + hi * d[q]
-            found, k = surface_normal(base, lq, ctx, P, key, cache, h_grad, nrm, e)
+            found, k = surface_normal(base, lq, ctx, P, key, cache, nrm)
+            if not found:  # the primitive's surface ends at hi (a ray-cell row, a closing lumen): lo's
+                for q in range(3):
+                    e[q] = X[q] + lo * d[q]
+                found, k2 = surface_normal(e, lq, ctx, P, key, cache, nrm)
+                k += k2
             ne += k
             cnt[6] += k
             ok = ok and found

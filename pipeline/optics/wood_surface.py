@@ -26,8 +26,7 @@ from ._surface_march import COUNTS, HIT, NEEDS_REGION, PURPOSES, TOL, march, new
 from .interface import SIDE
 
 # Internal steps [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are
-# (crossings land on a fixed lattice).  H_GRAD is part of the normal's definition.
-H_GRAD = 1e-6  # central-difference step of a normal
+# (crossings land on a fixed lattice).
 STEP_SCALE = 1.0  # fraction of the clearance stepped (1: the whole proven clearance)
 NAMES = ("position", "direction", "status", "events", "path", "evaluations", "passes", "medium")
 FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickness (the base margin)
@@ -49,7 +48,7 @@ class WoodSurface:
     unbounded along R and L, as a surface medium (method ``exact``)."""
 
     def __init__(self, params: WoodParams, *, thickness_um: float, seed: int = 1, threads: int = 1,
-                 hit: float = HIT, tol: float = TOL, h_grad: float = H_GRAD, step_scale: float = STEP_SCALE,
+                 hit: float = HIT, tol: float = TOL, step_scale: float = STEP_SCALE,
                  margin_um: float | None = None, r_bounds_um: tuple | None = None):
         self.params = params
         # A wood bounded along R (a window of a section): a ray that ends outside, or whose next region
@@ -59,7 +58,7 @@ class WoodSurface:
         self.r_bounds_um = None if r_bounds_um is None else (float(r_bounds_um[0]), float(r_bounds_um[1]))
         self.thickness_um = float(thickness_um)
         self.seed = int(seed)
-        self.hit, self.tol, self.h_grad, self.step_scale = float(hit), float(tol), float(h_grad), float(step_scale)
+        self.hit, self.tol, self.step_scale = float(hit), float(tol), float(step_scale)
         self.token = ("wood-surfaces", json.dumps(params.to_dict(), sort_keys=True), self.seed, self.thickness_um)
         # The base margin of regions [µm]; it changes how many are built, never a ray's numbers.
         self.margin_um = FIRST_MARGIN_UM + 0.05 * self.thickness_um if margin_um is None else float(margin_um)
@@ -149,7 +148,7 @@ class WoodSurface:
                     _MEMOS.popitem(last=False)
                 memo = free.pop() if free else (new_cache(), new_work())
             march(start[sel], heading[sel], ids[sel], self.thickness_um, *optics, ctx,
-                  self.hit, self.tol, self.h_grad, self.step_scale, *(a[lo:hi] for a in res[:8]),
+                  self.hit, self.tol, self.step_scale, *(a[lo:hi] for a in res[:8]),
                   res[10][lo:hi] if log_events else res[10], memo[0], resume[sel],
                   res[8][lo:hi], res[9][lo:hi], memo[1])
             with _SHARED:
