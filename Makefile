@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
 # quick: the paper's samples, at most 5 woods, a twentieth of the rays (minutes); paper: the committed
-# results (SCALE=paper YES=1; Table 1 on as many woods as its target asks for, about 17 min on 2 cores);
+# results (SCALE=paper YES=1; Table 1 on as many woods as its target asks for, at most 40: about 40 min on 2 cores);
 # small: a tenth of the thickness (tests).
 SCALE ?= quick
 SCHEDULER ?=

@@ -20,8 +20,9 @@ Writes the "exact" section of results/bench.json:
 - whole_process: `twray trace --preset birch --thickness-mm 1 --rays 200` as whole processes with
   `exact` and with `accurate` (kernels compiled by a first run of each, the second timed);
 - normals: µs per normal at the primitives listed at random points of 0.25 mm of birch and of
-  balsa (warm, one core), by the analytic gradient (one call) and by the central differences the
-  march takes (six evaluations of the primitive, step 1e-6 µm), and the angle between the two.
+  balsa (warm, one core), by the analytic gradient (one call: the march's normal since `exact` 4) and by
+  the central differences it took before (six evaluations of the primitive, step 1e-6 µm), and the
+  angle between the two.
 Each part runs in a fresh process so that "cold" means it.
 """
 
