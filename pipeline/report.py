@@ -190,7 +190,8 @@ def opening(d: ReportData) -> list[str]:
 def _maps_traced(d: ReportData) -> str:
     """How the design maps were traced, as the report says it."""
     d0 = next(iter(d.maps.values()))
-    return f"`make design`, `exact`, {d0.attrs['realisations']} woods × {d0.attrs['rays']} rays a cell"
+    return (f"`make design`, `exact` version {d0.attrs['tracer_version']}, {d0.attrs['realisations']} woods × "
+            f"{d0.attrs['rays']} rays a cell")
 
 
 def glance(d: ReportData) -> list[str]:
