@@ -69,6 +69,18 @@ def interval(point: float, draws: np.ndarray, n_real: int) -> tuple[float, float
     return float(lo), float(hi)
 
 
+def holm_resolved(p_values, alpha: float = 1.0 - LEVEL) -> int:
+    """How many of ``p_values`` (NaNs left out) Holm's step-down procedure resolves at a
+    family-wise error ``alpha``."""
+    ps = np.sort(np.asarray([p for p in p_values if p == p], float))
+    n = 0
+    for i, p in enumerate(ps):
+        if p > alpha / (ps.size - i):
+            break
+        n += 1
+    return n
+
+
 def p_value(effect: "Effect") -> float:
     """Two-sided p-value of an effect against no change, from its interval (t on woods − 1 d.o.f.,
     the interval's half-width being t · SE); NaN for an interval over rays alone."""

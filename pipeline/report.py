@@ -20,7 +20,7 @@ from .analysis import HAZE_ANGLE_DEG
 from .effects import (N_BOOT, Effect, all_effects_of, camera_rows, experiment_rows, fibre_tip_rows, fine_voxel_rows,
                       method_rows, reference_index, table1_rows)
 from .design import MAPS, glance_tables, window_table
-from .effects import p_value
+from .effects import holm_resolved, p_value
 from .figures import table1_structures
 from .publish import open_dataset
 from .report_tables import (balsa_reading_sentence, camera_markdown, camera_methods_markdown, effects_markdown,
@@ -569,11 +569,7 @@ def multiple_comparisons_sentence(all_effects: dict) -> str:
     ps = ps[np.isfinite(ps)]
     n = ps.size
     resolved = sum(1 for e in effs if e.resolved)
-    holm = 0
-    for i, p in enumerate(np.sort(ps)):
-        if p > 0.05 / (n - i):
-            break
-        holm += 1
+    holm = holm_resolved(ps)
     return (f"**Multiple comparisons.** {n} changes are tested above; {resolved} are resolved at 95 %, against "
             f"about {0.05 * n:.0f} that would be by chance if no change were real. {holm} stay resolved with Holm's "
             f"correction for all {n} tests (family-wise error 5 %). \"Resolved\" means resolved against sampling "
