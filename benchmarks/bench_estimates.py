@@ -26,6 +26,10 @@ ROOT = Path(__file__).resolve().parent.parent
 TWRAY = [sys.executable, "-m", "pipeline"]
 STUDY = ("preset: birch\nrealisations: 2\nrays: {rays}\nbeam_um: 100\nthickness_mm: {mm}\n"
          "vary: {{parameter: delta_ri, values: [0.01, -0.01]}}\n")
+# Into air through 2 mm: rays past the critical angle are guided sideways between the faces, each
+# meeting the distortion tiles of its path once (the tiles a worker keeps are bounded).
+AIR = ("preset: birch\nrealisations: 2\nrays: 500\nbeam_um: 150\nthickness_mm: 2\ntrace: {method: exact, exit: air}\n"
+       "vary: {parameter: delta_ri, values: [-0.03, -0.01, 0.01, 0.03]}\n")
 
 # name: (scale, command (strings with {tmp}), folders whose bytes are the disk it used)
 CASES = {
@@ -56,6 +60,8 @@ CASES = {
     "study-table1-2-quick": ("paper", ["study", str(ROOT / "studies/table1/study-2.yaml"), "--scale", "quick",
                                        "--workers", "2", "--cache", "{tmp}/cache", "--results", "{tmp}/results"],
                              ["cache", "results"]),
+    "study-exact-air-2mm": ("paper", ["study", "{tmp}/air.yaml", "--workers", "2", "--cache", "{tmp}/cache",
+                                      "--results", "{tmp}/results"], ["cache", "results"]),
     "camera-small": ("small", ["camera", str(ROOT / "studies/camera/figure5.yaml"), "--scale", "small", "--method", "fast",
                                "--workers", "2", "--cache", "{tmp}/cache", "--results", "{tmp}/results"],
                      ["cache", "results"]),
@@ -115,6 +121,7 @@ def run_case(name: str) -> dict:
     with tempfile.TemporaryDirectory(prefix="twray-est-") as d:
         tmp = Path(d)
         (tmp / "s.yaml").write_text(STUDY.format(rays=150, mm=0.3))
+        (tmp / "air.yaml").write_text(AIR)
         return measure(argv, tmp, folders)
 
 

@@ -31,6 +31,8 @@ from scipy import stats
 from pipeline.effects import LEVEL, holm_resolved
 
 NUMBERS = (("FWHM_R", "°"), ("FWHM_L", "°"), ("haze", "%"))
+WAVE_NUMBERS = (("FWHM_R_half_max_ray", "°"), ("haze_ray", "%"))  # the wave regime's ray side
+LISTED = 60  # a dataset with more paired differences lists its resolved and its largest few
 MOVED = (1e-9, 1e-6, 1e-3)  # [rad]
 
 
@@ -72,7 +74,7 @@ def paired(old: xr.Dataset, new: xr.Dataset, name: str) -> list[dict]:
     io, jn = _common(old, new)
     var = f"{name}_per_realisation"
     dims = old[name].dims
-    scale = 100.0 if name == "haze" else 1.0
+    scale = 100.0 if name.startswith("haze") else 1.0
     rows = []
     for idx in np.ndindex(*old[name].shape):
         at = dict(zip(dims, idx))
@@ -112,26 +114,70 @@ def images(old: xr.Dataset, new: xr.Dataset) -> list[dict]:
     return rows
 
 
+def wave(old: xr.Dataset, new: xr.Dataset) -> dict:
+    """The wave regime's ray side (its waves are not traced): per ray-side number (per geometry, exit
+    and ΔRI, over its woods) the paired difference; and how many verdicts "rays hold" changed."""
+    entry = {}
+    for name, _ in WAVE_NUMBERS:
+        o = old[name].mean("realisation")
+        n = new[name].mean("realisation")
+        pair = xr.Dataset({name: o, f"{name}_per_realisation": old[name].transpose(*o.dims, "realisation")})
+        pair_new = xr.Dataset({name: n, f"{name}_per_realisation": new[name].transpose(*n.dims, "realisation")})
+        entry[name] = paired(pair.assign_coords(realisation=old["realisation"]),
+                             pair_new.assign_coords(realisation=new["realisation"]), name)
+    for verdict in ("rays_hold", "haze_holds"):
+        if verdict in old and verdict in new:
+            entry[f"{verdict}_changed"] = int((old[verdict].values != new[verdict].values).sum())
+            entry[f"{verdict}_cells"] = int(old[verdict].size)
+    return entry
+
+
+def tradeoff(old: xr.Dataset, new: xr.Dataset) -> list[dict]:
+    """The trade-off's `exact` points (one wood, its rays not kept): the reference numbers old and
+    new beside the old point's own interval half-width (a difference within it is not resolved)."""
+    rows = []
+    for i in np.flatnonzero(new["method"].values == "exact"):
+        match = np.flatnonzero((old["method"].values == "exact") & (old["scene"].values == new["scene"].values[i])
+                               & (old["rays"].values == new["rays"].values[i]))
+        if not len(match):
+            continue
+        j = int(match[0])
+        for name, half, scale in (("FWHM_R", "FWHM_R_halfwidth", 1.0), ("haze", "haze_halfwidth", 100.0)):
+            a, b = float(old[name].values[j]) * scale, float(new[name].values[i]) * scale
+            h = float(old[half].values[j]) * scale
+            rows.append({"value": f"{new['scene'].values[i]}, {int(new['rays'].values[i])} rays", "number": name,
+                         "old": a, "new": b, "diff": b - a, "half": h, "within": bool(abs(b - a) <= h)})
+    return rows
+
+
 def compare(old_dir: Path, new_dir: Path) -> dict:
     result = {}
     for new_path in sorted(new_dir.rglob("*.zarr")):
         rel = new_path.relative_to(new_dir)
         old_path = old_dir / rel
-        if not old_path.exists():
+        if not old_path.exists() or any(p.suffix == ".zarr" for p in rel.parents):
             continue
         new = _open(new_path)
+        if "reference_haze" in new and "method" in new.coords:  # the speed/accuracy trade-off
+            old = _open(old_path)
+            rows = tradeoff(old, new)
+            if any(r["diff"] != 0 for r in rows):
+                result[str(rel)] = {"tracer": "exact points", "tradeoff": rows}
+            continue
         if (new.attrs.get("tracing_method") != "exact" or not ({"realisation", "config"} & set(new.dims))
-                or not ({"theta_r", "image"} & set(new.data_vars))):
+                or not ({"theta_r", "image", "haze_ray"} & set(new.data_vars))):
             continue
         old = _open(old_path)
         if old.attrs.get("tracer_version") == new.attrs.get("tracer_version"):
             continue  # not retraced
+        tracer = f"{old.attrs.get('tracer_version')} -> {new.attrs.get('tracer_version')}"
         if "image" in new and "config" in new.dims:
-            result[str(rel)] = {"tracer": f"{old.attrs.get('tracer_version')} -> {new.attrs.get('tracer_version')}",
-                                "images": images(old, new)}
+            result[str(rel)] = {"tracer": tracer, "images": images(old, new)}
             continue
-        entry = {"tracer": f"{old.attrs.get('tracer_version')} -> {new.attrs.get('tracer_version')}",
-                 "per_ray": per_ray(old, new)}
+        if "haze_ray" in new:
+            result[str(rel)] = {"tracer": tracer, **wave(old, new)}
+            continue
+        entry = {"tracer": tracer, "per_ray": per_ray(old, new)}
         for name, _ in NUMBERS:
             if f"{name}_per_realisation" in old and f"{name}_per_realisation" in new:
                 entry[name] = paired(old, new, name)
@@ -168,22 +214,47 @@ def markdown(result: dict) -> str:
             for r in e["images"]:
                 lines.append(f"| {name} | {e['tracer']} | {r['config']} | {r['equal_pixels']} of {r['pixels']} | "
                              f"{r['rms']:.4f} | {r['independent_rms']:.4f} | {r['ratio']:.2f} | {r['mean_diff']:+.4f} |")
-    rows = [r for e in result.values() for n, _ in NUMBERS for r in e.get(n, [])]
+    numbers = NUMBERS + WAVE_NUMBERS
+    rows = [r for e in result.values() for n, _ in numbers for r in e.get(n, [])]
     resolved = sum(r["resolved"] for r in rows)
     lines += ["", "## Published numbers", "",
               f"{resolved} of {len(rows)} paired differences resolved at 95 % each (about "
               f"{0.05 * len(rows):.1f} expected by chance alone where nothing moved but the rays' sampling); "
-              f"{holm_resolved(r['p'] for r in rows)} resolved at a family-wise 95 % (Holm).", ""]
+              f"{holm_resolved(r['p'] for r in rows)} resolved at a family-wise 95 % (Holm). A dataset with more "
+              f"than {LISTED} lists those resolved and its {LISTED // 10} largest in units of their half-width; "
+              "every one is in RETRACE.json.", ""]
     for name, e in result.items():
-        if "per_ray" not in e:
+        own = [(num, unit, r) for num, unit in numbers for r in e.get(num, [])]
+        if not own:
             continue
-        lines += [f"### {name}", "",
-                  "| value | number | unit | old | new | new − old [95 % CI] | woods | resolved |",
+        lines += [f"### {name}", ""]
+        if len(own) > LISTED:
+            ratio = [abs(r["diff"]) / r["half"] if r["half"] > 0 else (0.0 if r["diff"] == 0 else math.inf)
+                     for _, _, r in own]
+            order = np.argsort(ratio)[::-1]
+            keep = sorted({int(i) for i in order[:LISTED // 10]} | {i for i, (_, _, r) in enumerate(own) if r["resolved"]})
+            lines += [f"{len(own)} paired differences, {sum(r['resolved'] for _, _, r in own)} resolved; the "
+                      f"largest |new − old| is {ratio[order[0]]:.2f} of its half-width.", ""]
+            own = [own[i] for i in keep]
+        for verdict in ("rays_hold", "haze_holds"):
+            if f"{verdict}_changed" in e:
+                lines += [f"Verdict `{verdict}` changed in {e[f'{verdict}_changed']} of {e[f'{verdict}_cells']} cells.", ""]
+        lines += ["| value | number | unit | old | new | new − old [95 % CI] | woods | resolved |",
                   "|---|---|---|---|---|---|---|---|"]
-        for num, unit in NUMBERS:
-            for r in e.get(num, []):
-                lines.append(f"| {r['value']} | {num} | {unit} | {r['old']:.3f} | {r['new']:.3f} | "
-                             f"{r['diff']:+.3f} ± {r['half']:.3f} | {r['woods']} | {'**yes**' if r['resolved'] else 'no'} |")
+        for num, unit, r in own:
+            lines.append(f"| {r['value']} | {num} | {unit} | {r['old']:.3f} | {r['new']:.3f} | "
+                         f"{r['diff']:+.3f} ± {r['half']:.3f} | {r['woods']} | {'**yes**' if r['resolved'] else 'no'} |")
+        lines.append("")
+    trade = {k: e for k, e in result.items() if "tradeoff" in e}
+    for name, e in trade.items():
+        lines += [f"### {name}", "",
+                  "The trade-off's `exact` points trace one wood and keep no rays, so no paired interval: the old "
+                  "point's own 95 % half-width (over its rays) beside the change.", "",
+                  "| point | number | old | new | new − old | old half-width | within it |", "|---|---|---|---|---|---|---|"]
+        for r in e["tradeoff"]:
+            unit = "%" if r["number"] == "haze" else "°"
+            lines.append(f"| {r['value']} | {r['number']} [{unit}] | {r['old']:.3f} | {r['new']:.3f} | {r['diff']:+.3f} | "
+                         f"{r['half']:.3f} | {'yes' if r['within'] else '**no**'} |")
         lines.append("")
     return "\n".join(lines)
 

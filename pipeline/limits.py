@@ -55,6 +55,10 @@ INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
                    # plus its regions
                    "exact": 1.6e-5}
 REGION_MEMORY_FACTOR = 4.0  # exact: a worker's growth with its regions (their tiles, caches and arenas)
+# exact, in a study: from this thickness [µm] on, rays guided along R to the event cap (birch's design
+# maps: 11-46 of 35,000 rays at 1-2 mm) fill a worker's tiles of the wood in use up to their ceiling
+# (1.0-1.04 GB of tiles a worker measured at 2 mm).
+GUIDED_FROM_UM = 1000.0
 REGION_CPU_S_PER_BYTE = 1.7e-8  # exact: building a trace's regions (1.5 mm of birch: 0.8 CPU-s, nearly all tiles)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
 # What a study writes besides its wood (measured by tests/test_limits.py): per shard of rays an .npz
@@ -206,6 +210,17 @@ def surface_region_bytes(beam_um: float, thickness_um: float, pitch_um: float) -
     return 3.0 * 16.0 * (side / grid + 2) * ((thickness_um + 2.0) / grid + 2)
 
 
+def tiles_kept_bytes(scene) -> float:
+    """Memory of the distortion tiles a study's worker keeps beyond one trace's region tracing
+    ``scene`` (generated wood, a surface method; docs/methods.md#distortion): from GUIDED_FROM_UM
+    of thickness on, a few rays in a thousand are guided along R by total reflection to the event
+    cap, each over a strip of tiles ``max_events`` interfaces long, which the wood in use keeps up
+    to its ceiling; the strips of one wood's scenes overlap little, so the ceiling is counted."""
+    from .microstructure.model import WOOD_TILE_CAP, TILE_BYTES
+
+    return float(WOOD_TILE_CAP * TILE_BYTES) if scene.thickness_um >= GUIDED_FROM_UM else 0.0
+
+
 def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: float, pitch_um: float,
                    method: str, wood: bool = True, store: bool = False, generated: bool = True,
                    params=None) -> Estimate:
@@ -249,16 +264,19 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
         # its cost) are cached in the worker and shared by every scene of the same wood (Table 1's
         # values of ΔRI, say): counted once a wood.
         again = 0.0
-        if s.wood is not None and METHODS.get(s.settings.method) == "surfaces":
+        surface = s.wood is not None and METHODS.get(s.settings.method) == "surfaces"
+        if surface:
             region = surface_region_bytes(s.beam_um, s.thickness_um, s.pitch_um) * REGION_CPU_S_PER_BYTE
             again = n_shards * region
             key = (repr(s.wood), s.seed)
             regions[key] = max(regions.get(key, 0.0), region)
+        # A worker keeps the distortion tiles it computed across shards, up to its budget.
+        kept = tiles_kept_bytes(s) if surface else 0.0
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))
         written = n_shards * SHARD_BYTES + s.rays * (SHARD_RAY_BYTES + DATASET_RAY_BYTES) + 2 * ENTRY_BYTES
         est = est + Estimate(shard.cpu_s * n_shards - again + SCENE_CPU_S + s.rays * POOL_CPU_S_PER_RAY,
-                             max(shard.memory, reduce), written)
+                             max(shard.memory + kept, reduce), written)
     pools = sum(1 for s in scenes if s.realisation == 0)  # one pool a value, over its woods
     est = est + Estimate(sum(regions.values()) + POOL_CPU_S * pools, 0.0, 0.0)
     return est + _woods(woods) + (Estimate(DATASET_CPU_S, 0.0, DATASET_BYTES) if scenes else Estimate())

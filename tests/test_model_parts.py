@@ -84,10 +84,11 @@ def test_the_pull_back_bound_holds_between_any_two_points_of_a_tile_and_is_nearl
         assert 1.0 + 0.5 * (bound - 1.0) < worst <= bound, (a, b, worst, bound)
 
 
-def test_a_woods_tiles_are_never_computed_twice_while_it_is_used_and_woods_are_let_go_whole(monkeypatch):
-    """A worker keeps every distortion tile of the wood it traces, however many (beyond the budget),
-    and lets whole woods go, least recently used first: a wood's tiles are computed once while its
-    shards run, and a tile computed again after its wood was let go is the same tile."""
+def test_a_woods_tiles_are_computed_once_up_to_its_ceiling_and_woods_are_let_go_whole(monkeypatch):
+    """A worker keeps every distortion tile of the wood it traces up to the wood's ceiling (beyond the
+    budget), lets other woods go whole, least recently used first, and past the ceiling the wood's
+    own least recently used tiles: a wood's tiles are computed once while its shards run, the tiles
+    its regions keep using stay however far other rays wander, and a tile computed again is the same."""
     from pipeline.microstructure import model
 
     M = model_constants(build_params("birch")).tobytes()
@@ -99,7 +100,7 @@ def test_a_woods_tiles_are_never_computed_twice_while_it_is_used_and_woods_are_l
         return kernel(seed, *args)
 
     monkeypatch.setattr(model, "distortion_tile", counted)
-    tiles = model._WoodTiles(budget=4)
+    tiles = model._WoodTiles(budget=4, wood_cap=8)
     first = {}
     for _ in range(3):  # wood 1's shards: 6 tiles, over the budget of 4, each computed once
         for a in range(6):
@@ -112,3 +113,10 @@ def test_a_woods_tiles_are_never_computed_twice_while_it_is_used_and_woods_are_l
     assert made and np.array_equal(again, first[3])  # a tile is a pure function of its key
     (_, _), made = tiles.get(2, M, 0, 0)
     assert not made and tiles.held == 2  # within the budget both woods stay
+    computed.clear()
+    for a in range(10, 30):  # wood 3: a ray wandering over 20 tiles while tile (0, 0) is used throughout
+        tiles.get(3, M, 0, 0)
+        tiles.get(3, M, a, 0)
+        assert len(tiles.woods[(3, M)]) <= 8 and tiles.held == sum(len(t) for t in tiles.woods.values())
+    assert list(tiles.woods) == [(3, M)] and list(tiles.woods[(3, M)])[-2:] == [(0, 0), (29, 0)]
+    assert computed.count((3, 0, 0)) == 1 and len(computed) == 21  # the tile in use never again

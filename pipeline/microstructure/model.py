@@ -81,7 +81,9 @@ def tip_wall_angle_deg(p: WoodParams) -> float:
     return math.degrees(math.atan(lumen_half_width_um(p) / p.fibre_tip_um))
 
 
-TILE_BUDGET = 2048  # distortion tiles kept beside the wood in use (65² × 2 floats: ~140 MB)
+TILE_BUDGET = 2048  # distortion tiles kept beside the wood in use (65² × 2 floats each: ~140 MB in all)
+WOOD_TILE_CAP = 16384  # tiles the wood in use keeps at most (~1.1 GB), a ceiling for rays guided sideways
+TILE_BYTES = (K.TILE + 1) ** 2 * 2 * 8  # one tile's grid [bytes] (its counters beside it are negligible)
 
 
 class _WoodTiles:
@@ -89,12 +91,16 @@ class _WoodTiles:
 
     Whole woods are let go, least recently used first, once more than ``budget`` tiles are held,
     but never the wood asked for last: while a worker traces one wood (its shards of every value
-    and study run in a row, docs/performance.md), none of its tiles is computed twice, however
-    many tiles it needs.  A tile is a pure function of its key, so what is kept changes no number.
+    and study run in a row, docs/performance.md), none of its tiles is computed twice while it
+    holds at most ``wood_cap``; past that, its own least recently used tiles go.  A 150 µm beam
+    through 2 mm of birch needs about 430 tiles; rays guided sideways between the faces by total
+    reflection (exit into air) need thousands, revisited as they bounce, which is what the cap
+    bounds.  A tile is a pure function of its key, so what is kept changes no number.
     """
 
-    def __init__(self, budget: int):
+    def __init__(self, budget: int, wood_cap: int = WOOD_TILE_CAP):
         self.budget = budget
+        self.wood_cap = max(wood_cap, 1)
         self.woods: collections.OrderedDict = collections.OrderedDict()
         self.held = 0
         self.lock = threading.Lock()
@@ -103,21 +109,25 @@ class _WoodTiles:
         """((tile, its counters), whether it was computed by this call)."""
         wood = (seed, M_bytes)
         with self.lock:
-            tiles = self.woods.setdefault(wood, {})
+            tiles = self.woods.setdefault(wood, collections.OrderedDict())
             self.woods.move_to_end(wood)
             found = tiles.get((a, b))
-        if found is not None:
-            return found, False
+            if found is not None:
+                tiles.move_to_end((a, b))
+                return found, False
         made = _compute_tile(seed, M_bytes, a, b)
         with self.lock:
-            tiles = self.woods.setdefault(wood, {})
+            tiles = self.woods.setdefault(wood, collections.OrderedDict())
             if (a, b) not in tiles:
                 tiles[(a, b)] = made
                 self.held += 1
             while self.held > self.budget and len(self.woods) > 1 and next(iter(self.woods)) != wood:
                 _, gone = self.woods.popitem(last=False)
                 self.held -= len(gone)
-            return tiles[(a, b)], True
+            while len(tiles) > self.wood_cap:  # the wood in use over its ceiling: its least recently used
+                tiles.popitem(last=False)
+                self.held -= 1
+            return tiles.get((a, b), made), True
 
     def cache_clear(self) -> None:
         with self.lock:
@@ -176,10 +186,20 @@ def _large_dipoles(seed: int, M_bytes: bytes, n_lo: int, n_hi: int, m_lo: int, m
     return np.ascontiguousarray(found[np.lexsort((found[:, 0], found[:, 1]))])
 
 
+def _tile_span(M) -> float:
+    """A distortion tile's side [µm] for the model constants ``M``."""
+    return K.TILE * M[K.PITCH] / K.GRID_PER_PITCH
+
+
+def tile_span_um(p: WoodParams) -> float:
+    """A distortion tile's side [µm] in wood ``p`` (58 µm in birch, 141 µm in balsa)."""
+    return _tile_span(model_constants(p))
+
+
 def tile_range(M, r_lo, r_hi, t_lo, t_hi) -> tuple[int, int, int, int]:
     """(a0, a1, b0, b1): the distortion tiles a0..a1 (along R) × b0..b1 (along T) covering
     [r_lo, r_hi] × [t_lo, t_hi] µm."""
-    span = K.TILE * M[K.PITCH] / K.GRID_PER_PITCH
+    span = _tile_span(M)
     return math.floor(r_lo / span), math.floor(r_hi / span), math.floor(t_lo / span), math.floor(t_hi / span)
 
 
