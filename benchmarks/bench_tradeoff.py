@@ -258,6 +258,7 @@ VARS = {  # name: (row key, long_name, units)
 def dataset(rows: list[dict], seconds: float):
     import xarray as xr
 
+    from pipeline import versions
     from pipeline.provenance import provenance_attrs
 
     n = len(rows)
@@ -280,7 +281,8 @@ def dataset(rows: list[dict], seconds: float):
     ds = xr.Dataset(data, coords=coords, attrs={
         "title": "twray speed/accuracy trade", "description": __doc__.strip(),
         "seconds": seconds, "machine_cpus": os.cpu_count() or 1, "beam_um": BEAM_UM, "seed": SEED,
-        "scenes": json.dumps(scenes())})
+        "scenes": json.dumps(scenes()),
+        "tracer_versions": json.dumps({m: versions.tracer(m) for m in sorted({r["method"] for r in rows})})})
     ds.attrs.update(provenance_attrs({"points": [{k: r[k] for k in ("scene", "method", "voxel_um", "rays",
                                                                       "step_vox")} for r in rows]}))
     return ds

@@ -162,7 +162,9 @@ def compare(old_dir: Path, new_dir: Path) -> dict:
             old = _open(old_path)
             rows = tradeoff(old, new)
             if any(r["diff"] != 0 for r in rows):
-                result[str(rel)] = {"tracer": "exact points", "tradeoff": rows}
+                was = json.loads(old.attrs.get("tracer_versions", "{}")).get("exact", "?")
+                now = json.loads(new.attrs.get("tracer_versions", "{}")).get("exact", "?")
+                result[str(rel)] = {"tracer": f"{was} -> {now}", "tradeoff": rows}
             continue
         if (new.attrs.get("tracing_method") != "exact" or not ({"realisation", "config"} & set(new.dims))
                 or not ({"theta_r", "image", "haze_ray"} & set(new.data_vars))):
@@ -247,7 +249,7 @@ def markdown(result: dict) -> str:
         lines.append("")
     trade = {k: e for k, e in result.items() if "tradeoff" in e}
     for name, e in trade.items():
-        lines += [f"### {name}", "",
+        lines += [f"### {name} (`exact` {e['tracer']})", "",
                   "The trade-off's `exact` points trace one wood and keep no rays, so no paired interval: the old "
                   "point's own 95 % half-width (over its rays) beside the change.", "",
                   "| point | number | old | new | new − old | old half-width | within it |", "|---|---|---|---|---|---|---|"]
