@@ -26,8 +26,8 @@ ROOT = Path(__file__).resolve().parent.parent
 TWRAY = [sys.executable, "-m", "pipeline"]
 STUDY = ("preset: birch\nrealisations: 2\nrays: {rays}\nbeam_um: 100\nthickness_mm: {mm}\n"
          "vary: {{parameter: delta_ri, values: [0.01, -0.01]}}\n")
-# Into air through 2 mm: rays past the critical angle are guided sideways between the faces, each
-# meeting the distortion tiles of its path once (the tiles a worker keeps are bounded).
+# Into air through 2 mm at |ΔRI| up to 0.03: a few rays are guided along R by total reflection at the
+# walls to the event cap, laying strips of distortion tiles (which a worker keeps up to a ceiling).
 AIR = ("preset: birch\nrealisations: 2\nrays: 500\nbeam_um: 150\nthickness_mm: 2\ntrace: {method: exact, exit: air}\n"
        "vary: {parameter: delta_ri, values: [-0.03, -0.01, 0.01, 0.03]}\n")
 

@@ -215,7 +215,8 @@ def tiles_kept_bytes(scene) -> float:
     ``scene`` (generated wood, a surface method; docs/methods.md#distortion): from GUIDED_FROM_UM
     of thickness on, a few rays in a thousand are guided along R by total reflection to the event
     cap, each over a strip of tiles ``max_events`` interfaces long, which the wood in use keeps up
-    to its ceiling; the strips of one wood's scenes overlap little, so the ceiling is counted."""
+    to its ceiling; one wood's guided rays together fill most of it (12,000-15,000 tiles measured
+    in birch at 1-2 mm), so the ceiling is counted."""
     from .microstructure.model import WOOD_TILE_CAP, TILE_BYTES
 
     return float(WOOD_TILE_CAP * TILE_BYTES) if scene.thickness_um >= GUIDED_FROM_UM else 0.0

@@ -215,10 +215,11 @@ def test_a_ray_that_starts_on_a_cell_face_does_not_cross_again_there():
     assert r.status[0] == TRANSMITTED and r.events[0] < 100
 
 
-def test_a_volume_read_in_blocks_as_rays_reach_them_gives_the_same_rays_bit_for_bit(tmp_path):
+def test_a_volume_read_in_blocks_as_rays_reach_them_gives_the_same_rays_bit_for_bit(tmp_path, monkeypatch):
     """Rays stopped at a block's edge and resumed once it is read go on exactly as through the whole
     volume in one block: the same rays whatever the block size and however few blocks the pool
-    holds; a narrow beam through a Zarr array reads only the blocks around its path."""
+    holds; a narrow beam through a Zarr array reads only the blocks around its path, and each of the
+    store's chunks once, though blocks straddle them."""
     import zarr
 
     from pipeline.optics.rays import square_beam
@@ -235,6 +236,16 @@ def test_a_volume_read_in_blocks_as_rays_reach_them_gives_the_same_rays_bit_for_
     assert whole.events.sum() > 400
     store = zarr.create_array(tmp_path / "grey.zarr", shape=grey.shape, chunks=(8, 8, 8), dtype="f8")
     store[...] = grey
+    store_reads = []
+    getitem = type(store).__getitem__
+
+    def counted(self, key):
+        store_reads.append(key)
+        return getitem(self, key)
+
+    monkeypatch.setattr(type(store), "__getitem__", counted)
+    from pipeline.optics import iso
+    monkeypatch.setattr(iso, "SAMPLE_VOXELS", grey.size // 4)  # the threshold's sample: every 4th slice, not chunks
     for block, memory in ((5, 10 ** 9), (5, 4 * 6 ** 3 * 8), (8, 10 ** 9)):
         vol = IsoVolume(zarr.open_array(tmp_path / "grey.zarr", mode="r"), voxel_um=0.5, iso=0.1, block=block,
                         memory_bytes=memory)
@@ -244,6 +255,12 @@ def test_a_volume_read_in_blocks_as_rays_reach_them_gives_the_same_rays_bit_for_
         every = math.prod(-(-n // block) for n in grey.shape)
         if memory > 10 ** 6:
             assert vol.blocks_read < every / 2, (vol.blocks_read, every)
+        # Blocks (and their one-voxel halo) straddle the store's 8³ chunks: each chunk read once.
+        reads = [key for key in store_reads if isinstance(key, tuple) and all(k.step is None for k in key)]
+        starts = [tuple(k.start for k in key) for key in reads]
+        assert all(a % 8 == 0 for st in starts for a in st) and len(set(starts)) == len(starts) > 0, starts
+        assert len(reads) < vol.chunk_reader.whole_reads  # what reading each block at once would decompress
+        store_reads.clear()
 
 
 def test_a_non_finite_grey_level_is_named_when_its_block_is_read(monkeypatch):

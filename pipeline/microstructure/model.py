@@ -82,7 +82,7 @@ def tip_wall_angle_deg(p: WoodParams) -> float:
 
 
 TILE_BUDGET = 2048  # distortion tiles kept beside the wood in use (65² × 2 floats each: ~140 MB in all)
-WOOD_TILE_CAP = 16384  # tiles the wood in use keeps at most (~1.1 GB), a ceiling for rays guided sideways
+WOOD_TILE_CAP = 16384  # tiles the wood in use keeps at most (~1.1 GB), a ceiling for rays guided along R
 TILE_BYTES = (K.TILE + 1) ** 2 * 2 * 8  # one tile's grid [bytes] (its counters beside it are negligible)
 
 
@@ -93,9 +93,9 @@ class _WoodTiles:
     but never the wood asked for last: while a worker traces one wood (its shards of every value
     and study run in a row, docs/performance.md), none of its tiles is computed twice while it
     holds at most ``wood_cap``; past that, its own least recently used tiles go.  A 150 µm beam
-    through 2 mm of birch needs about 430 tiles; rays guided sideways between the faces by total
-    reflection (exit into air) need thousands, revisited as they bounce, which is what the cap
-    bounds.  A tile is a pure function of its key, so what is kept changes no number.
+    through 2 mm of birch needs about 430 tiles; the few rays guided along R by total reflection
+    at the walls up to the event cap need thousands, revisited as they bounce, which is what the
+    cap bounds.  A tile is a pure function of its key, so what is kept changes no number.
     """
 
     def __init__(self, budget: int, wood_cap: int = WOOD_TILE_CAP):

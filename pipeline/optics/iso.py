@@ -9,11 +9,15 @@ are handled by :func:`pipeline.optics.faces.through_faces` as for every medium.
 
 The volume is read lazily, in blocks of :data:`BLOCK`³ cells, as the rays reach them, into a pool
 of at most ``memory_bytes``; a NumPy array, a memory-mapped ``.npy`` or a Zarr array is read only
-where rays go, in its own data type (uint8, uint16, float32 or float64; others as float64).
+where rays go, in its own data type (uint8, uint16, float32 or float64; others as float64).  A Zarr
+array is read chunk by chunk through :class:`ChunkReader`, so that a block and its halo, which
+straddle the store's chunks, decompress each chunk once while it is kept.
 """
 
 from __future__ import annotations
 
+import collections
+import itertools
 import math
 import threading
 
@@ -28,7 +32,61 @@ OTSU_BINS = 256
 BLOCK = 32  # cells a side of a block of the volume read at a time
 MEMORY_BYTES = 512 * 2 ** 20  # the pool of blocks one trace holds at most
 SAMPLE_VOXELS = 2 ** 24  # Otsu's threshold and the data's range from at most this many voxels
+CHUNK_BYTES = 64 * 2 ** 20  # decompressed chunks of a Zarr volume kept at most
 _NATIVE = (np.uint8, np.uint16, np.float32, np.float64)
+
+
+class ChunkReader:
+    """Regions of a chunked array (a Zarr array) read chunk by chunk, the decompressed chunks kept
+    (at most ``memory_bytes``, the least recently read going): a region that straddles chunks
+    decompresses each once while it is kept.  ``decompressed`` counts the chunks read from the
+    store; ``whole_reads`` what reading each region at once would have decompressed."""
+
+    def __init__(self, array, memory_bytes: int = CHUNK_BYTES):
+        self.array, self.shape = array, tuple(int(n) for n in array.shape)
+        self.chunks = tuple(int(c) for c in array.chunks)
+        self.memory_bytes = int(memory_bytes)
+        self.held: collections.OrderedDict = collections.OrderedDict()
+        self.bytes = self.decompressed = self.whole_reads = 0
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def applies(array) -> bool:
+        """Whether ``array`` is a Zarr array (read chunk by chunk)."""
+        return type(array).__module__.split(".")[0] == "zarr" and hasattr(array, "chunks")
+
+    def __getitem__(self, region: tuple) -> np.ndarray:
+        spans = [r.indices(n)[:2] for r, n in zip(region, self.shape)]
+        out = np.empty([max(b - a, 0) for a, b in spans], self.array.dtype)
+        if out.size == 0:
+            return out
+        ranges = [range(a // c, (b - 1) // c + 1) for (a, b), c in zip(spans, self.chunks)]
+        with self._lock:
+            self.whole_reads += math.prod(len(r) for r in ranges)
+            for idx in itertools.product(*ranges):
+                data = self._chunk(idx)
+                src, dst = [], []
+                for (a, b), i, c in zip(spans, idx, self.chunks):
+                    lo, hi = max(a, i * c), min(b, (i + 1) * c)
+                    src.append(slice(lo - i * c, hi - i * c))
+                    dst.append(slice(lo - a, hi - a))
+                out[tuple(dst)] = data[tuple(src)]
+        return out
+
+    def _chunk(self, idx: tuple) -> np.ndarray:
+        data = self.held.get(idx)
+        if data is not None:
+            self.held.move_to_end(idx)
+            return data
+        data = np.asarray(self.array[tuple(slice(i * c, min((i + 1) * c, n))
+                                           for i, c, n in zip(idx, self.chunks, self.shape))])
+        self.decompressed += 1
+        self.held[idx] = data
+        self.bytes += data.nbytes
+        while self.bytes > self.memory_bytes and len(self.held) > 1:
+            _, gone = self.held.popitem(last=False)
+            self.bytes -= gone.nbytes
+        return data
 
 
 def otsu_threshold(values: np.ndarray, bins: int = OTSU_BINS) -> float:
@@ -74,6 +132,7 @@ class IsoVolume:
         if isinstance(block, bool) or not isinstance(block, int) or block < 1:
             raise ParameterError(f"`block` must be an integer >= 1, got block={block!r}")
         self.array = array if hasattr(array, "dtype") else np.asarray(array)
+        self.chunk_reader = ChunkReader(array) if ChunkReader.applies(array) else None
         dtype = np.dtype(self.array.dtype)
         if dtype.kind not in "biuf":
             raise ParameterError(f"`volume` must hold numbers (grey levels), got dtype {dtype}")
@@ -120,7 +179,8 @@ class IsoVolume:
         return self._raw(region, first)
 
     def _raw(self, region, first) -> np.ndarray:
-        data = np.asarray(self.array[region])
+        chunked = self.chunk_reader is not None and all(r.step in (None, 1) for r in region)
+        data = self.chunk_reader[region] if chunked else np.asarray(self.array[region])
         if data.dtype != self.dtype:
             data = data.astype(self.dtype)
         if self.dtype.kind == "f":
