@@ -271,7 +271,7 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
             again = n_shards * region
             key = (repr(s.wood), s.seed)
             regions[key] = max(regions.get(key, 0.0), region)
-        # A worker keeps the distortion tiles it computed across shards, up to its budget.
+        # A worker keeps the distortion tiles of the wood it traces across shards (thick sheets: up to a ceiling).
         kept = tiles_kept_bytes(s) if surface else 0.0
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))

@@ -186,20 +186,10 @@ def _large_dipoles(seed: int, M_bytes: bytes, n_lo: int, n_hi: int, m_lo: int, m
     return np.ascontiguousarray(found[np.lexsort((found[:, 0], found[:, 1]))])
 
 
-def _tile_span(M) -> float:
-    """A distortion tile's side [µm] for the model constants ``M``."""
-    return K.TILE * M[K.PITCH] / K.GRID_PER_PITCH
-
-
-def tile_span_um(p: WoodParams) -> float:
-    """A distortion tile's side [µm] in wood ``p`` (58 µm in birch, 141 µm in balsa)."""
-    return _tile_span(model_constants(p))
-
-
 def tile_range(M, r_lo, r_hi, t_lo, t_hi) -> tuple[int, int, int, int]:
     """(a0, a1, b0, b1): the distortion tiles a0..a1 (along R) × b0..b1 (along T) covering
     [r_lo, r_hi] × [t_lo, t_hi] µm."""
-    span = _tile_span(M)
+    span = K.TILE * M[K.PITCH] / K.GRID_PER_PITCH
     return math.floor(r_lo / span), math.floor(r_hi / span), math.floor(t_lo / span), math.floor(t_hi / span)
 
 
