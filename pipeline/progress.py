@@ -19,6 +19,7 @@ def _every_s() -> float:
 
 PROGRESS_EVERY_S = _every_s()
 POLL_S = 1.0  # how often a followed run looks for a failed task
+LOOK_S = 0.1  # how often the client's loop looks at a followed run's futures
 
 
 def mode(quiet: bool) -> str:
@@ -76,13 +77,29 @@ def _pending(dask_scheduler, keys) -> tuple[list, list]:
     return held, finished
 
 
+async def _settled(futures, timeout_s: float) -> bool:
+    """On the client's loop: whether every one of ``futures`` finished within ``timeout_s``; returns
+    early when one fails. It looks at the futures every LOOK_S and leaves nothing behind, where a
+    timed-out ``distributed.wait`` leaves a waiting task on the loop for every unfinished future
+    (a long study's driving process grew by 60 MB a minute, docs/performance.md). The caller's
+    thread blocks in ``client.sync`` meanwhile, so that Ctrl-C reaches it there, as it did in
+    ``wait``."""
+    import asyncio
+
+    end = time.monotonic() + timeout_s
+    while True:
+        if all(f.done() for f in futures):
+            return True
+        if any(f.status == "error" for f in futures) or time.monotonic() >= end:
+            return False
+        await asyncio.sleep(LOOK_S)
+
+
 def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRESS_EVERY_S,
            weights: dict | None = None) -> None:
     """Show the progress of ``futures`` (whose graphs hold the task ``keys``) until they finish;
     ``weights``: the estimated CPU-seconds of some keys (the others weigh nothing), from which the
     share of the work done and the time left are told (else from the count of tasks)."""
-    from distributed import wait
-
     if how == "bar":
         from distributed import progress
 
@@ -98,12 +115,7 @@ def follow(client, futures, keys, label: str, how: str, every_s: float = PROGRES
     seen: set = set()
     done_keys: set = set()
     last = time.perf_counter()
-    while True:
-        try:
-            wait(futures, timeout=min(every_s, POLL_S))
-            break
-        except TimeoutError:
-            pass
+    while not client.sync(_settled, futures, min(every_s, POLL_S)):
         if any(f.status == "error" for f in futures):
             return  # a failed task ends the run now, as gathering would; no "all done" line
         if time.perf_counter() - last < every_s:

@@ -180,3 +180,32 @@ def test_following_a_cluster_returns_when_a_task_fails_without_waiting_for_the_o
         assert futures[1].status == "error" and not futures[0].done()
         assert "tasks done" not in capsys.readouterr().err  # no line saying all is done
         _RELEASE.set()
+
+
+def test_following_a_cluster_leaves_no_waiters_behind_on_the_clients_loop():
+    """Following polls the futures: it adds no task to the client's event loop per look (a timed-out
+    distributed.wait leaves one per unfinished future, which a long study piled up by the million)."""
+    from distributed import Client
+
+    _RELEASE.clear()
+    seen = []
+    with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
+        futures = client.compute([dask.delayed(_held)(dask_key_name=f"held-{i}") for i in range(50)])
+        loop = client.loop.asyncio_loop
+        before = len(client.sync(_tasks))
+
+        def release():
+            time.sleep(1.5)  # about 7 looks at the futures
+            seen.append(len(client.sync(_tasks)))
+            _RELEASE.set()
+
+        threading.Thread(target=release).start()
+        follow(client, futures, [f"held-{i}" for i in range(50)], "trace", "lines", every_s=0.05)
+        assert loop is client.loop.asyncio_loop and all(f.done() for f in futures)
+    assert seen and seen[0] - before < 50, (before, seen)
+
+
+async def _tasks():
+    import asyncio
+
+    return asyncio.all_tasks()

@@ -57,6 +57,15 @@ def _terminated(signum, frame):
     raise KeyboardInterrupt  # a kill (SIGTERM) cleans up like Ctrl-C: staged outputs are removed
 
 
+def _interrupt_handled() -> None:
+    """Tell CPython that the interrupt was handled. A KeyboardInterrupt that passed through code
+    evaluated from a string (``exec`` of source: dataclasses and named tuples build their methods
+    so, as modules are imported) sets a flag that catching it does not clear; under ``python -m``
+    the interpreter then ends by SIGINT (status -2) instead of with the 130 returned. Evaluating a
+    string clears the flag."""
+    exec("None")
+
+
 def main(argv: list[str] | None = None) -> int:
     log_to_stderr()
     previous = None
@@ -70,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"twray: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
+        _interrupt_handled()
         print("twray: interrupted; nothing half-written is left (studies and the camera resume from their "
               "cache)", file=sys.stderr)
         return EXIT_INTERRUPTED
