@@ -326,6 +326,12 @@ def window_table(maps: dict, thicknesses=(0.25, 1.0, 2.0), limit: float = 0.1) -
     return lines
 
 
+def two_digits(x: float) -> str:
+    """``x`` to two significant digits as a table prints it: never in powers of ten (110, not 1.1e+02)."""
+    text = f"{x:.2g}"
+    return f"{x:.0f}" if "e+" in text else text
+
+
 def glance_tables(maps: dict) -> list[str]:
     """Markdown for a designer, per species: haze, then FWHM_R, in air / inside the sample, over the
     traced thickness × ΔRI cells of its two maps (``maps``: by name of MAPS)."""
@@ -337,13 +343,14 @@ def glance_tables(maps: dict) -> list[str]:
         dri = np.sort(inside["delta_ri"].values.astype(float))
         est = inside.attrs.get("fwhm_estimator", "lorentz-mle")
         for name, what, scale, fmt in (("haze", "haze [%]", 100.0, "{:.0f}"),
-                                       ("FWHM_R", f"FWHM_R ({est}) [°]", 1.0, "{:.2g}")):
+                                       ("FWHM_R", f"FWHM_R ({est}) [°]", 1.0, two_digits)):
             lines += [f"**{preset}, {what}**, in air / inside", "",
                       "| thickness [mm] \\ ΔRI | " + " | ".join(f"{d:+g}" for d in dri) + " |",
                       "|---|" + "---|" * len(dri)]
             for t in inside["thickness"].values.astype(float):
-                cells = [fmt.format(scale * float(air[name].sel(thickness=t, delta_ri=d))) + "/"
-                         + fmt.format(scale * float(inside[name].sel(thickness=t, delta_ri=d))) for d in dri]
+                fmt = getattr(fmt, "format", fmt)
+                cells = [fmt(scale * float(air[name].sel(thickness=t, delta_ri=d))) + "/"
+                         + fmt(scale * float(inside[name].sel(thickness=t, delta_ri=d))) for d in dri]
                 lines.append(f"| {t:g} | " + " | ".join(cells) + " |")
             lines.append("")
     return lines

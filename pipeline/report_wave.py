@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .analysis import SLUG
+from .design import two_digits
 from .wave.run import FWHM_TOL, HAZE_TOL, WINDOW_LOST
 
 REGIME = Path("wave") / "regime.zarr"  # under a scale's results folder
@@ -28,7 +29,7 @@ def _ci(ds, name: str, scale: float = 1.0, fmt: str = "+.1f") -> str:
 
 def _deg(x: float) -> str:
     """A width in degrees, as the tables print it (below 0.01°: a width rays give when nearly none is deviated)."""
-    return "<0.01°" if x < 0.01 else (f"{x:.0f}°" if x >= 100 else f"{x:.2g}°")
+    return "<0.01°" if x < 0.01 else f"{two_digits(x)}°"
 
 
 def cell_text(ds) -> str:

@@ -107,3 +107,9 @@ def test_the_report_opens_with_every_traced_cell_of_both_maps_in_air_and_inside(
     assert lines[5] == "| 1 | 60/60 | 20/20 | 4/4 | 4/2 | 20/10 | 60/30 |"
     fw = lines.index("**birch, FWHM_R (lorentz-mle) [°]**, in air / inside")
     assert lines[fw + 5] == "| 1 | 60/60 | 20/20 | 4/4 | 4/2 | 20/10 | 60/30 |"  # FWHM_R = 100 · haze
+
+
+def test_table_values_keep_two_digits_and_never_go_to_powers_of_ten():
+    from pipeline.design import two_digits
+
+    assert [two_digits(x) for x in (0.123, 9.96, 12.5, 99.96, 105.3)] == ["0.12", "10", "12", "100", "105"]
