@@ -102,6 +102,21 @@ def test_twray_wave_on_a_cluster_is_cached_and_bit_for_bit_the_cases_computed_he
     assert math.isfinite(float(ds["haze_difference"].sel(geometry="tubes", exit="internal", delta_ri=0.03)))
 
 
+def test_a_wave_cases_cache_key_changes_with_its_ray_tracers_version(tmp_path, monkeypatch):
+    """A case holds rays beside its waves: a new version of their method must compute it again (the
+    key held only the waves' version, and a regime retraced with a new `exact` kept its old rays)."""
+    from pipeline import versions
+    from pipeline.wave.regime import RAY_METHOD
+    from pipeline.wave.run import case_path, case_record
+
+    regime = load_regime(_write(tmp_path, TINY))
+    g = regime.geometries[0]
+    before = case_path(tmp_path, case_record(regime, g, 0))
+    assert case_path(tmp_path, case_record(load_regime(_write(tmp_path, TINY)), g, 0)) == before
+    monkeypatch.setitem(versions.TRACERS, RAY_METHOD, versions.TRACERS[RAY_METHOD] + "-next")
+    assert case_path(tmp_path, case_record(regime, g, 0)) != before
+
+
 def test_a_wood_bounded_along_r_lets_rays_out_through_its_sides():
     """A section's window: rays that end beyond [r_lo, r_hi] leave with status SIDE, the others as in
     the unbounded wood, ray for ray."""

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import rng
+from .. import rng, versions
 from ..analysis import HALF_MAX, LORENTZ_HIST, deviated_from_angles, half_max_fwhm, lorentz_hist_fwhm
 from ..optics.settings import INDEX_RANGE
 from ..params import ParameterError, build_params, read_yaml_file
@@ -26,6 +26,7 @@ from .solver import ABSORBER_UM, Sampling, StepReflectance, absorber, gaussian_b
 from .spectrum import exit_angles, power_summary, stored_distribution, white_light
 
 WAVE_VERSION = "3"  # bump when a case's numbers change for the same inputs
+RAY_METHOD = "exact"  # the rays beside the waves; its version is part of every case's key
 EXITS = ("internal", "air")
 PAD = 4  # the exit field is zero-padded this many times before its spectrum: angles sampled 4x finer
 POSITION_SPACING_UM = 5000.0  # beam positions of a realisation lie this far apart along R
@@ -91,7 +92,8 @@ class Regime:
         """What a case's numbers depend on, besides its geometry and realisation."""
         return {"delta_ri": list(self.delta_ri), "ri_polymer": self.ri_polymer, "positions": self.positions,
                 "beam_um": self.beam_um, "rays": self.rays, "wavelengths": self.wavelengths,
-                "sampling": self.sampling.to_dict(), "keep_deg": self.keep_deg, "wave": WAVE_VERSION}
+                "sampling": self.sampling.to_dict(), "keep_deg": self.keep_deg, "wave": WAVE_VERSION,
+                "tracer": versions.tracer(RAY_METHOD)}
 
     def window_um(self, geometry: Geometry) -> float:
         """Width of the simulated window: twice the beam, the spread to ``keep_deg`` over the
@@ -270,7 +272,7 @@ def run_case(regime: Regime, geometry: Geometry, realisation: int) -> dict:
 
 
 def ray_angles(medium, origins: np.ndarray, n_poly: float, delta_ri: float) -> dict:
-    """θ_R [degree] of ``exact`` rays through ``medium`` (inside, and into air), which left through
+    """θ_R [degree] of RAY_METHOD's rays through ``medium`` (inside, and into air), which left through
     the exit face, and which left the window through a side (counted as deviated, as the waves'
     light absorbed at the window's sides is)."""
     from ..optics.interface import SIDE, TRANSMITTED, leave_into_air
@@ -280,7 +282,7 @@ def ray_angles(medium, origins: np.ndarray, n_poly: float, delta_ri: float) -> d
 
     optics = Optics.of_delta(n_poly, delta_ri)
     res = trace(medium, Beam(origins, np.array([0.0, 1.0, 0.0]), np.arange(len(origins))), optics,
-                TraceSettings(method="exact"))
+                TraceSettings(method=RAY_METHOD))
     done = res.status == TRANSMITTED
     n_end = np.where(res.extras["medium"] == 1, optics.n_wall, optics.n_poly)
     air, tir = leave_into_air(res.direction, n_end, done)

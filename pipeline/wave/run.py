@@ -19,7 +19,7 @@ import numpy as np
 from .. import __version__
 from ..analysis import HALF_MAX, LORENTZ_HIST, SLUG
 from ..cache import cache_key, read_npz, write_npz
-from .regime import EXITS, WAVE_VERSION, Regime, run_case
+from .regime import EXITS, RAY_METHOD, WAVE_VERSION, Regime, run_case
 from .spectrum import SPECTRUM_GRID_DEG, diffraction_limit_deg, white_light
 
 HAZE_TOL = 0.02  # rays hold where |haze_ray - haze_wave| <= 2 points ...
@@ -146,7 +146,7 @@ def _describe(ds, regime: Regime, lam) -> None:
     from ..provenance import provenance_attrs
 
     ds.attrs.update(provenance_attrs({"regime": regime.name, "scale": regime.scale,
-                                      "cases": [g.to_dict() for g in regime.geometries]}, "exact"))
+                                      "cases": [g.to_dict() for g in regime.geometries]}, RAY_METHOD))
     ds.attrs.update({
         "title": regime.title, "wave_version": WAVE_VERSION, "scale": regime.scale,
         "ri_polymer": regime.ri_polymer, "beam_um": regime.beam_um, "rays_per_realisation": regime.rays * regime.positions,
