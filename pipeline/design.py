@@ -342,13 +342,12 @@ def glance_tables(maps: dict) -> list[str]:
             continue
         dri = np.sort(inside["delta_ri"].values.astype(float))
         est = inside.attrs.get("fwhm_estimator", "lorentz-mle")
-        for name, what, scale, fmt in (("haze", "haze [%]", 100.0, "{:.0f}"),
+        for name, what, scale, fmt in (("haze", "haze [%]", 100.0, "{:.0f}".format),
                                        ("FWHM_R", f"FWHM_R ({est}) [°]", 1.0, two_digits)):
             lines += [f"**{preset}, {what}**, in air / inside", "",
                       "| thickness [mm] \\ ΔRI | " + " | ".join(f"{d:+g}" for d in dri) + " |",
                       "|---|" + "---|" * len(dri)]
             for t in inside["thickness"].values.astype(float):
-                fmt = getattr(fmt, "format", fmt)
                 cells = [fmt(scale * float(air[name].sel(thickness=t, delta_ri=d))) + "/"
                          + fmt(scale * float(inside[name].sel(thickness=t, delta_ri=d))) for d in dri]
                 lines.append(f"| {t:g} | " + " | ".join(cells) + " |")
