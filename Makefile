@@ -153,6 +153,7 @@ bench-iso: install
 	$(BIN)/python benchmarks/bench_iso.py --preset birch $(ISO_1MM)
 	$(BIN)/python benchmarks/bench_iso.py --preset balsa $(ISO_1MM)
 	$(BIN)/python benchmarks/iso_normals.py results/iso_normals.json
+	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxels 0.5 --scans clean --rays 4000 --woods 25 --methods iso,accurate --out results/iso_25woods.json
 	$(BIN)/python benchmarks/bench_iso.py --lattices --out results/iso.json --md results/iso.md
 	$(BIN)/python benchmarks/bench_accuracy.py --render
 
