@@ -155,7 +155,7 @@ def run_point(p: dict) -> dict:
     out = {**p, "fwhm_r": s["fwhm_r_deg"], "fwhm_r_ci": s["fwhm_r_ci_deg"], "fwhm_l": s["fwhm_l_deg"],
            "fwhm_l_ci": s["fwhm_l_ci_deg"], "haze": s["haze"], "haze_ci": s["haze_ci"],
            "interfaces_per_ray": s["interfaces_per_ray"], "transmitted": s["n_transmitted"],
-           "voxels_read": float(s["voxels_read"]),
+           "voxels_read": float(s.get("voxels_read", 0.0)),  # exact reads no voxels (no voxel diagnostics)
            "wall_s": wall_s, "cpu_s": cpu_s,
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
            "voxels_generated": float("nan"), "generated_fraction_of_box": float("nan")}
