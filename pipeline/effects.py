@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .analysis import deviated_from_angles, fwhm, image_quality
+from .analysis import HALF_MAX, deviated_from_angles, fwhm, image_quality
 from .summary import N_BOOT, percentile_interval, t_interval
 from .publish import open_dataset
 from .result_sets import study_dimension, value_label
@@ -40,8 +40,9 @@ def reference_index(ds) -> int:
             return int(hits[0])
     return 0
 
-def reduce_rays(theta_r, theta_l, ok, idx) -> np.ndarray:
-    """FWHM_R, FWHM_L and haze of rays ``idx`` (those of them transmitted, ``ok``) of one value.
+def reduce_rays(theta_r, theta_l, ok, idx, estimator: str = HALF_MAX) -> np.ndarray:
+    """FWHM_R, FWHM_L (by ``estimator``) and haze of rays ``idx`` (those of them transmitted,
+    ``ok``) of one value.
 
     The arrays are (realisation, ray) and ``idx`` a list of (realisation, ray indices) pairs,
     or 1-D arrays and an array of ray indices."""
@@ -49,7 +50,7 @@ def reduce_rays(theta_r, theta_l, ok, idx) -> np.ndarray:
         theta_r, theta_l, ok, idx = theta_r[None], theta_l[None], ok[None], [(0, idx)]
     sel_r = np.concatenate([theta_r[r][i[ok[r][i]]] for r, i in idx])
     sel_l = np.concatenate([theta_l[r][i[ok[r][i]]] for r, i in idx])
-    return np.array([fwhm(sel_r), fwhm(sel_l), float(np.mean(deviated_from_angles(sel_r, sel_l)))])
+    return np.array([fwhm(sel_r, estimator), fwhm(sel_l, estimator), float(np.mean(deviated_from_angles(sel_r, sel_l)))])
 
 def resample(rng: np.random.Generator, n_real: int, n_rays: int) -> list:
     """One bootstrap draw of (realisation, ray indices) pairs: with several woods, woods drawn
@@ -94,17 +95,18 @@ def p_value(effect: "Effect") -> float:
     return float(2 * student_t.sf(abs(effect.change) / se, effect.woods - 1))
 
 
-def paired_change(ref, other, *, n_boot: int = N_BOOT, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def paired_change(ref, other, *, n_boot: int = N_BOOT, seed: int = 0,
+                  estimator: str = HALF_MAX) -> tuple[np.ndarray, np.ndarray]:
     """``other`` against ``ref``, two traces of the same rays (each (theta_r, theta_l, transmitted),
     1-D over the rays, ray i the same entry point in both): the change of FWHM_R and FWHM_L (% of
-    ``ref``'s) and of haze (points), and its 95 % interval from a bootstrap drawing the same rays
-    for both.  Returns (change (3,), interval (3, 2))."""
+    ``ref``'s, by ``estimator``) and of haze (points), and its 95 % interval from a bootstrap
+    drawing the same rays for both.  Returns (change (3,), interval (3, 2))."""
     rng = np.random.default_rng(seed)
     n = len(ref[0])
 
     def change(idx):
-        a = reduce_rays(ref[0], ref[1], ref[2], idx)
-        b = reduce_rays(other[0], other[1], other[2], idx)
+        a = reduce_rays(ref[0], ref[1], ref[2], idx, estimator)
+        b = reduce_rays(other[0], other[1], other[2], idx, estimator)
         return np.array([100 * (b[0] / a[0] - 1), 100 * (b[1] / a[1] - 1), 100 * (b[2] - a[2])])
 
     point = change(np.arange(n))

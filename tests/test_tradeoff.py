@@ -20,7 +20,7 @@ THETA_L = np.clip(RNG.standard_cauchy(3000) * 0.5, -60, 60)
 def wood(method, voxel, rays, wall_s, stretch=1.0, *, half_f=0.1, half_h=0.01):
     """A wood point whose rays are the reference's first ``rays``, θ_R stretched by ``stretch``."""
     angles = (THETA_R[:rays] * stretch, THETA_L[:rays].copy(), np.ones(rays, bool))
-    f_r, f_l, h = reduce_rays(*angles, np.arange(rays))
+    f_r, f_l, h = reduce_rays(*angles, np.arange(rays), T.ESTIMATOR)
     return {"scene": "birch_1mm", "method": method, "voxel_um": voxel, "rays": rays, "step_vox": math.nan,
             "reference": False, "fwhm_r": f_r, "fwhm_r_ci": [f_r - half_f, f_r + half_f], "fwhm_l": f_l,
             "haze": h, "haze_ci": [h - half_h, h + half_h], "wall_s": wall_s, "angles": angles}
@@ -43,7 +43,7 @@ def test_wood_errors_are_against_the_exact_trace_of_the_same_rays():
     assert ref["reference"] and not small["reference"]  # the exact trace with the most rays
     assert small["fwhm_r_bias"] == 0.0 and small["haze_bias"] == 0.0  # its first 500 rays are these
     assert small["fwhm_r_error"] == pytest.approx(0.1)  # exact: its interval alone
-    ref500 = reduce_rays(THETA_R[:500], THETA_L[:500], np.ones(500, bool), np.arange(500))
+    ref500 = reduce_rays(THETA_R[:500], THETA_L[:500], np.ones(500, bool), np.arange(500), T.ESTIMATOR)
     assert fast["ref_fwhm_r"] == pytest.approx(ref500[0])
     assert fast["fwhm_r_bias"] == pytest.approx(fast["fwhm_r"] - ref500[0])
     assert fast["fwhm_r_bias_pct"] == pytest.approx(30.0, abs=0.3)
@@ -88,3 +88,18 @@ def test_a_point_traced_with_each_kind_of_method_gives_a_row(monkeypatch):
     for r in rows:
         assert r["transmitted"] > 0 and math.isfinite(r["haze"]) and r["interfaces_per_ray"] > 10
         assert r["angles"][0].shape == (12,)  # kept for the paired bias against the reference
+
+
+def test_an_exact_point_is_unbiased_against_the_reference_of_which_its_rays_are_the_first(monkeypatch):
+    """A wood's `exact` point traces the first rays of its reference: its bias is none, which needs
+    the reference's widths by the points' own estimator (the reference was once reduced by the
+    project's default, half-max, against the points' Lorentz MLE: a bias of 2-3° on every point)."""
+    monkeypatch.setattr(T, "N_BOOT", 20)
+    pts = [{"scene": "birch_0.25mm", "method": "exact", "voxel_um": math.nan, "rays": n, "step_vox": math.nan,
+            "reference": False} for n in (30, 15)]
+    rows = [T.run_point(p) for p in pts]
+    T.errors(rows)
+    ref, small = rows
+    assert ref["reference"] and not small["reference"]
+    assert small["fwhm_r_bias"] == 0.0 and small["haze_bias"] == 0.0
+    assert small["ref_fwhm_r"] == small["fwhm_r"]
