@@ -87,13 +87,16 @@ def paired(old: xr.Dataset, new: xr.Dataset, name: str) -> list[dict]:
         mean = float(d.mean()) * scale if r else math.nan
         se = float(d.std(ddof=1) / math.sqrt(r)) * scale if r > 1 else math.nan
         half = float(stats.t.ppf(0.5 + LEVEL / 2, r - 1)) * se if r > 1 else math.nan
-        pval = (float(2.0 * stats.t.sf(abs(mean) / se, r - 1)) if se > 0 else (1.0 if mean == 0 else 0.0)) \
+        # Every wood moved alike (one ray across the haze cut in each, say): a zero spread gives the t
+        # interval zero width, which says nothing; such a change is flagged, not resolved, and has no p.
+        alike = bool(r > 1 and se == 0 and mean != 0)
+        pval = (float(2.0 * stats.t.sf(abs(mean) / se, r - 1)) if se > 0 else (1.0 if mean == 0 else math.nan)) \
             if r > 1 else math.nan
         label = ", ".join(f"{dim} {float(old[dim].values[i]):g}"
                           if old[dim].dtype.kind in "fiu" else f"{dim} {old[dim].values[i]}" for dim, i in at.items())
         rows.append({"value": label, "old": float(old[name].values[idx]) * scale,
                      "new": float(new[name].values[idx]) * scale, "woods": r, "diff": mean, "half": half, "p": pval,
-                     "resolved": bool(r > 1 and half == half and abs(mean) > half),
+                     "resolved": bool(r > 1 and half == half and not alike and abs(mean) > half), "alike": alike,
                      "shown": bool(abs(mean) >= SHOWN)})
     return rows
 
@@ -222,11 +225,14 @@ def markdown(result: dict) -> str:
     rows = [r for e in result.values() for n, _ in numbers for r in e.get(n, [])]
     resolved = sum(r["resolved"] for r in rows)
     tiny = sum(r["resolved"] and not r.get("shown", True) for r in rows)
+    alike = sum(r.get("alike", False) for r in rows)
     lines += ["", "## Published numbers", "",
               f"{resolved} of {len(rows)} paired differences resolved at 95 % each (about "
               f"{0.05 * len(rows):.1f} expected by chance alone where nothing moved but the rays' sampling"
               f"{f'; {tiny} of them smaller than {SHOWN:g} in their unit, rounding that every wood shares' if tiny else ''}); "
-              f"{holm_resolved(r['p'] for r in rows)} resolved at a family-wise 95 % (Holm). A dataset with more "
+              f"{holm_resolved(r['p'] for r in rows)} resolved at a family-wise 95 % (Holm)"
+              f"{f'; {alike} moved by the same amount in every wood, which no interval over woods can judge (listed)' if alike else ''}. "
+              f"A dataset with more "
               f"than {LISTED} lists those resolved and its {LISTED // 10} largest in units of their half-width; "
               "every one is in RETRACE.json.", ""]
     for name, e in result.items():
@@ -238,7 +244,8 @@ def markdown(result: dict) -> str:
             ratio = [abs(r["diff"]) / r["half"] if r["half"] > 0 else (0.0 if r["diff"] == 0 else math.inf)
                      for _, _, r in own]
             order = np.argsort(ratio)[::-1]
-            keep = sorted({int(i) for i in order[:LISTED // 10]} | {i for i, (_, _, r) in enumerate(own) if r["resolved"]})
+            keep = sorted({int(i) for i in order[:LISTED // 10]}
+                          | {i for i, (_, _, r) in enumerate(own) if r["resolved"] or r.get("alike")})
             lines += [f"{len(own)} paired differences, {sum(r['resolved'] for _, _, r in own)} resolved; the "
                       f"largest |new − old| is {ratio[order[0]]:.2f} of its half-width.", ""]
             own = [own[i] for i in keep]
@@ -266,6 +273,8 @@ def markdown(result: dict) -> str:
 
 
 def _resolved(r: dict) -> str:
+    if r.get("alike"):
+        return "alike in every wood (no spread)"
     if not r["resolved"]:
         return "no"
     return "**yes**" if r.get("shown", True) else f"yes, by under {SHOWN:g}"

@@ -55,10 +55,15 @@ INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
                    # plus its regions
                    "exact": 1.6e-5}
 REGION_MEMORY_FACTOR = 4.0  # exact: a worker's growth with its regions (their tiles, caches and arenas)
-# exact, in a study: from this thickness [µm] on, rays guided along R to the event cap (birch's design
-# maps: 11-46 of 35,000 rays at 1-2 mm) fill a worker's tiles of the wood in use up to their ceiling
-# (1.0-1.04 GB of tiles a worker measured at 2 mm).
-GUIDED_FROM_UM = 1000.0
+# exact, thick sheets at high |ΔRI|: a few rays in a thousand are guided along R by total reflection at the
+# walls, up to the event cap (birch's design maps: 11-46 of 35,000 rays at 1-2 mm), and build the
+# distortion tiles along their strips: about GUIDED_TILES_PER_RAY x (|ΔRI| / 0.03)^3 x (thickness / 2 mm)^3.4
+# tiles a ray beyond its beam's region, measured on birch into air (500 rays a scene, one wood, 1-2 mm,
+# |ΔRI| 0.01-0.03: 0.8-23 tiles a ray, the fit within 1.5x), at most GUIDED_TILES_MAX a ray beyond what was
+# measured (a ray guided to the event cap builds about 250). Each such tile, with the guided rays' extra
+# interfaces, costs GUIDED_TILE_CPU_S (2.1 ms measured on a host 1.5x slower than this module's rates), and
+# a worker keeps them (docs/performance.md#rays-guided-along-r).
+GUIDED_TILES_PER_RAY, GUIDED_TILES_MAX, GUIDED_TILE_CPU_S = 23.0, 60.0, 1.4e-3
 REGION_CPU_S_PER_BYTE = 1.7e-8  # exact: building a trace's regions (1.5 mm of birch: 0.8 CPU-s, nearly all tiles)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
 # What a study writes besides its wood (measured by tests/test_limits.py): per shard of rays an .npz
@@ -210,24 +215,29 @@ def surface_region_bytes(beam_um: float, thickness_um: float, pitch_um: float) -
     return 3.0 * 16.0 * (side / grid + 2) * ((thickness_um + 2.0) / grid + 2)
 
 
-def tiles_kept_bytes(scene) -> float:
-    """Memory of the distortion tiles a study's worker keeps beyond one trace's region tracing
-    ``scene`` (generated wood, a surface method; docs/methods.md#distortion): from GUIDED_FROM_UM
-    of thickness on, a few rays in a thousand are guided along R by total reflection to the event
-    cap, each over a strip of tiles ``max_events`` interfaces long, which the wood in use keeps up
-    to its ceiling; one wood's guided rays together fill most of it (12,000-15,000 tiles measured
-    in birch at 1-2 mm), so the ceiling is counted."""
+def tiles_kept_bytes(guided_tiles: float) -> float:
+    """Memory of the distortion tiles a study's worker keeps beyond one trace's region, for a wood
+    whose scenes' guided rays build ``guided_tiles`` (docs/methods.md#distortion): the wood in use
+    keeps them up to its ceiling (12,000-15,000 tiles measured in birch at 1-2 mm and |ΔRI| 0.03)."""
     from .microstructure.model import WOOD_TILE_CAP, TILE_BYTES
 
-    return float(WOOD_TILE_CAP * TILE_BYTES) if scene.thickness_um >= GUIDED_FROM_UM else 0.0
+    return float(min(WOOD_TILE_CAP, guided_tiles) * TILE_BYTES)
+
+
+def guided_tiles_per_ray(thickness_um: float, delta_ri: float) -> float:
+    """Distortion tiles a ray of generated wood builds beyond its beam's region, on average: those
+    of the few rays guided along R by total reflection at the walls (GUIDED_TILES_PER_RAY)."""
+    x = abs(delta_ri) / 0.03
+    return min(GUIDED_TILES_MAX, GUIDED_TILES_PER_RAY * x ** 3 * (thickness_um / 2000.0) ** 3.4)
 
 
 def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: float, pitch_um: float,
                    method: str, wood: bool = True, store: bool = False, generated: bool = True,
-                   params=None) -> Estimate:
+                   params=None, delta_ri: float = 0.0) -> Estimate:
     """One beam traced in one process, its start not counted (``wood``: generated as rays reach it;
     ``store``: kept on disk; ``generated``: the model's wood, not a reference lattice; ``params``:
-    the wood's WoodParams, for its generation rate and compression)."""
+    the wood's WoodParams, for its generation rate and compression; ``delta_ri``: the wall's index
+    minus the polymer's, for the tiles of guided rays)."""
     interfaces = rays * INTERFACES_PER_PITCH * thickness_um / pitch_um
     voxels = wood_voxels(beam_um, thickness_um, voxel_um) if wood and METHODS[method] == "voxels" else 0.0
     cpu = interfaces * INTERFACE_CPU_S.get(method, INTERFACE_CPU_S["accurate"]) + generate_cpu_s(voxels, params)
@@ -235,7 +245,7 @@ def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: 
     if generated and METHODS.get(method) == "surfaces":
         region = surface_region_bytes(beam_um, thickness_um, pitch_um)
         memory += REGION_MEMORY_FACTOR * region
-        cpu += region * REGION_CPU_S_PER_BYTE
+        cpu += region * REGION_CPU_S_PER_BYTE + rays * guided_tiles_per_ray(thickness_um, delta_ri) * GUIDED_TILE_CPU_S
     return Estimate(cpu, memory, stored_bytes(voxels, voxel_um, params) if store else 0.0)
 
 
@@ -243,7 +253,8 @@ def shard_estimate(scene, rays: int) -> Estimate:
     """One shard of ``rays`` rays of a study's ``scene`` traced, its rays stored."""
     return trace_estimate(rays=rays, beam_um=scene.beam_um, thickness_um=scene.thickness_um,
                           voxel_um=scene.traced_voxel_um, pitch_um=scene.pitch_um, method=scene.settings.method,
-                          wood=False, store=True, generated=scene.wood is not None, params=scene.wood)
+                          wood=False, store=True, generated=scene.wood is not None, params=scene.wood,
+                          delta_ri=scene.delta_ri)
 
 
 def study_estimate(scenes, *, shard_rays: int) -> Estimate:
@@ -252,9 +263,14 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
     est = Estimate()
     woods = {}
     regions = {}  # exact: per wood, the largest region a scene of it builds
+    scenes = [dataclasses.replace(s, rays=s.target.max_rays)  # traced to a precision: at most its cap of rays
+              if s.target is not None and s.target.over == "rays" else s for s in scenes]
+    guided = {}  # exact: per wood, the tiles its scenes' guided rays build, which a worker keeps
     for s in scenes:
-        if s.target is not None and s.target.over == "rays":  # traced to a precision: at most its cap of rays
-            s = dataclasses.replace(s, rays=s.target.max_rays)
+        if s.wood is not None and METHODS.get(s.settings.method) == "surfaces":
+            key = (repr(s.wood), s.seed)
+            guided[key] = guided.get(key, 0.0) + s.rays * guided_tiles_per_ray(s.thickness_um, s.delta_ri)
+    for s in scenes:
         voxel = s.traced_voxel_um
         if s.settings.medium_kind == "voxels" and s.wood is not None:  # surfaces and lattices store no wood
             key = (repr(s.wood), s.seed, voxel)
@@ -271,8 +287,8 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
             again = n_shards * region
             key = (repr(s.wood), s.seed)
             regions[key] = max(regions.get(key, 0.0), region)
-        # A worker keeps the distortion tiles of the wood it traces across shards (thick sheets: up to a ceiling).
-        kept = tiles_kept_bytes(s) if surface else 0.0
+        # A worker keeps the distortion tiles of the wood it traces across shards and scenes (up to a ceiling).
+        kept = tiles_kept_bytes(guided[(repr(s.wood), s.seed)]) if surface else 0.0
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))
         written = n_shards * SHARD_BYTES + s.rays * (SHARD_RAY_BYTES + DATASET_RAY_BYTES) + 2 * ENTRY_BYTES

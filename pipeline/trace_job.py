@@ -113,7 +113,8 @@ def medium_of(job: TraceJob):
                                                  voxel_um=voxel, pitch_um=pitch, method=job.settings.method,
                                                  wood=not job.volume,
                                                  generated=not job.volume and job.reference is None,
-                                                 params=job.wood) + limits.summary_estimate(rays)
+                                                 params=job.wood, delta_ri=job.optics.delta_ri) \
+        + limits.summary_estimate(rays)
 
 
 def run(job: TraceJob, *, out: Path | None = None, yes: bool = False, progress: str = "off") -> tuple:
