@@ -167,7 +167,7 @@ def compare(old_dir: Path, new_dir: Path) -> dict:
             old = _open(old_path)
             rows = tradeoff(old, new)
             if any(r["diff"] != 0 for r in rows):
-                was = json.loads(old.attrs.get("tracer_versions", "{}")).get("exact", "?")
+                was = json.loads(old.attrs.get("tracer_versions", "{}")).get("exact", "not recorded")
                 now = json.loads(new.attrs.get("tracer_versions", "{}")).get("exact", "?")
                 result[str(rel)] = {"tracer": f"{was} -> {now}", "tradeoff": rows}
             continue
