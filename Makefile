@@ -115,9 +115,10 @@ bench-trace: install
 bench-exact: install
 	$(BIN)/python benchmarks/bench_exact.py --out results/bench.json
 
-## Every command's CPU, memory and disk estimate beside what it used -> results/estimates.md (about 6 min).
+## Every command's CPU, memory and disk estimate beside what it used -> results/estimates.md and the guided rays' tiles -> results/guided_tiles.json (about 9 min).
 bench-estimates: install
 	$(BIN)/python benchmarks/bench_estimates.py --paper --out results/bench.json
+	$(BIN)/python benchmarks/guided_tiles.py --out results/guided_tiles.json
 
 bench-study: install
 	$(BIN)/python benchmarks/bench_study.py --out results/bench.json
@@ -154,6 +155,7 @@ bench-iso: install
 	$(BIN)/python benchmarks/bench_iso.py --preset balsa $(ISO_1MM)
 	$(BIN)/python benchmarks/iso_normals.py results/iso_normals.json
 	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxels 0.5 --scans clean --rays 4000 --woods 25 --methods iso,accurate --out results/iso_25woods.json
+	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxels 0.5 --scans clean --rays 4000 --woods 25 --methods "iso smoothed 0.5 µm" --merge --out results/iso_25woods.json
 	$(BIN)/python benchmarks/bench_iso.py --lattices --out results/iso.json --md results/iso.md
 	$(BIN)/python benchmarks/bench_accuracy.py --render
 

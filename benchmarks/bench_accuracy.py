@@ -269,8 +269,7 @@ def write(doc: dict, out: Path) -> None:
         md.append(f"| {deg:g} | {100 * math.sqrt(np.mean([r['fwhm_r_error'] ** 2 for r in sel])):.0f} % | "
                   f"{math.sqrt(np.mean([r['haze_error_points'] ** 2 for r in sel])):.1f} |")
     md += ["", *wood_section(out.parent / "tradeoff.json")]
-    md += ["", *scans.section(scans.read(out.parent / "iso.json"), "##", scans.read_lattices(out.parent / "iso.json"),
-                                scans.read_normals(out.parent / "iso_normals.json"))]
+    md += ["", *scans.section_of(out.parent, "##")]
     out.with_suffix(".md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 

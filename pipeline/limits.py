@@ -57,13 +57,13 @@ INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
 REGION_MEMORY_FACTOR = 4.0  # exact: a worker's growth with its regions (their tiles, caches and arenas)
 # exact, thick sheets at high |ΔRI|: a few rays in a thousand are guided along R by total reflection at the
 # walls, up to the event cap (birch's design maps: 11-46 of 35,000 rays at 1-2 mm), and build the
-# distortion tiles along their strips: about GUIDED_TILES_PER_RAY x (|ΔRI| / 0.03)^3 x (thickness / 2 mm)^3.4
+# distortion tiles along their strips: about GUIDED_TILES_PER_RAY x (|ΔRI| / 0.03)^3.1 x (thickness / 2 mm)^3.4
 # tiles a ray beyond its beam's region, measured on birch into air (500 rays a scene, one wood, 1-2 mm,
-# |ΔRI| 0.01-0.03: 0.8-23 tiles a ray, the fit within 1.5x), at most GUIDED_TILES_MAX a ray beyond what was
+# |ΔRI| 0.01-0.03: 0.6-24 tiles a ray, the fit within 1.3x from 0.5 a ray up), at most GUIDED_TILES_MAX a ray beyond what was
 # measured (a ray guided to the event cap builds about 250). Each such tile, with the guided rays' extra
 # interfaces, costs GUIDED_TILE_CPU_S (2.1 ms measured on a host 1.5x slower than this module's rates), and
 # a worker keeps them (docs/performance.md#rays-guided-along-r).
-GUIDED_TILES_PER_RAY, GUIDED_TILES_MAX, GUIDED_TILE_CPU_S = 23.0, 60.0, 1.4e-3
+GUIDED_TILES_PER_RAY, GUIDED_TILES_MAX, GUIDED_TILE_CPU_S = 28.0, 60.0, 1.4e-3
 REGION_CPU_S_PER_BYTE = 1.7e-8  # exact: building a trace's regions (1.5 mm of birch: 0.8 CPU-s, nearly all tiles)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
 # What a study writes besides its wood (measured by tests/test_limits.py): per shard of rays an .npz
@@ -228,7 +228,7 @@ def guided_tiles_per_ray(thickness_um: float, delta_ri: float) -> float:
     """Distortion tiles a ray of generated wood builds beyond its beam's region, on average: those
     of the few rays guided along R by total reflection at the walls (GUIDED_TILES_PER_RAY)."""
     x = abs(delta_ri) / 0.03
-    return min(GUIDED_TILES_MAX, GUIDED_TILES_PER_RAY * x ** 3 * (thickness_um / 2000.0) ** 3.4)
+    return min(GUIDED_TILES_MAX, GUIDED_TILES_PER_RAY * x ** 3.1 * (thickness_um / 2000.0) ** 3.4)
 
 
 def trace_estimate(*, rays: int, beam_um: float, thickness_um: float, voxel_um: float, pitch_um: float,

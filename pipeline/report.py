@@ -28,10 +28,7 @@ from .report_tables import (balsa_reading_sentence, camera_markdown, camera_meth
                             method_summary, minutes_text, table1_markdown, tradeoff_markdown, variation_markdown,
                             woods_text)
 from .report_source import source_sections
-from .report_scans import read as read_scans
-from .report_scans import read_lattices as read_scan_lattices
-from .report_scans import read_normals as read_scan_normals
-from .report_scans import section as scans_section
+from .report_scans import section_of as scans_section_of
 from .report_wave import wave_section
 from .result_sets import TABLE1, load_table1, study_dimension, traced_voxel_um_of, value_label
 
@@ -169,9 +166,7 @@ def build_report(results: Path, *, scale_dir: str = "paper", n_boot: int = N_BOO
     """The Markdown of ``results/REPORT.md`` from the datasets under ``results``: its sections in order."""
     d = load_report_data(results, scale_dir=scale_dir, n_boot=n_boot)
     sections = (opening, glance, provenance_line, microstructures, trajectories, table1_section, variation,
-                trends, voxel_error, lambda d: scans_section(read_scans(d.results / "iso.json"), "##",
-                                                     read_scan_lattices(d.results / "iso.json"),
-                                                     read_scan_normals(d.results / "iso_normals.json")),
+                trends, voxel_error, lambda d: scans_section_of(d.results, "##"),
                 lambda d: source_sections(d.results, d.base, d.tables, d.methods),
                 paper_method, measured_samples, fibre_tips, camera_section, design_section,
                 lambda d: wave_section(d.results, d.scale_dir, d.fig), speed_against_accuracy, reproducing,

@@ -244,12 +244,13 @@ def test_an_exact_woods_region_is_costed_once_however_its_rays_are_sharded_and_i
 def test_the_tiles_of_rays_guided_along_r_are_costed_in_thick_sheets_at_high_contrast_only():
     """Rays guided along R by total reflection at the walls build tiles along their strips: measured
     on birch into air (500 rays, one wood), 0.6 tiles a ray at 1 mm and |ΔRI| 0.02, 2.4 at 1.5 mm,
-    10 at 2 mm, and 23 at 2 mm and 0.03; little in Table 1's sheets at ΔRI 0.01."""
+    10 at 2 mm, and 23 at 2 mm and ±0.03; little in Table 1's sheets at ΔRI 0.01."""
     g = limits.guided_tiles_per_ray
     assert g(2000.0, 0.03) == g(2000.0, -0.03) == pytest.approx(limits.GUIDED_TILES_PER_RAY)
-    for t_um, dri, measured in ((1000.0, 0.02, 0.6), (1500.0, 0.02, 2.4), (2000.0, 0.02, 10.0),
-                                (1500.0, 0.03, 12.8), (2000.0, 0.01, 0.8)):
-        assert measured / limits.ACCURACY <= g(t_um, dri) <= measured * limits.ACCURACY, (t_um, dri)
+    for t_um, dri, measured in ((1000.0, 0.02, 0.6), (1000.0, 0.03, 2.2), (1500.0, 0.02, 2.4), (1500.0, 0.03, 13.6),
+                                (1500.0, -0.03, 12.0), (2000.0, 0.01, 0.8), (2000.0, 0.02, 10.0), (2000.0, 0.03, 24.4),
+                                (2000.0, -0.03, 21.6)):  # results/guided_tiles.json
+        assert measured / 1.3 <= g(t_um, dri) <= measured * 1.3, (t_um, dri)
     assert g(5000.0, 0.05) == limits.GUIDED_TILES_MAX  # beyond what was measured: at most a quarter of a strip a ray
     kw = dict(rays=1000, beam_um=150.0, voxel_um=0.5, pitch_um=14.5, method="exact", wood=False)
     thick = trace_estimate(thickness_um=2000.0, delta_ri=0.03, **kw).cpu_s

@@ -160,6 +160,17 @@ def _tile(seed: int, M_bytes: bytes, a: int, b: int) -> tuple[np.ndarray, np.nda
 _tile.cache_clear = _TILES.cache_clear
 
 
+def tiles_held() -> int:
+    """How many distortion tiles this process holds, of every wood (benchmarks count them)."""
+    return _TILES.held
+
+
+def clear_tiles() -> None:
+    """Let go every distortion tile this process holds (a tile is a pure function of its key, so
+    no number changes; the next trace builds what it needs again)."""
+    _TILES.cache_clear()
+
+
 LARGE_BLOCK = 128  # nodes per side of a block whose large-scale dipoles are found once
 
 
