@@ -55,14 +55,15 @@ INTERFACE_CPU_S = {"paper": 1.2e-3, "fast": 3e-6, "accurate": 5e-6,
                    # plus its regions
                    "exact": 1.6e-5}
 REGION_MEMORY_FACTOR = 4.0  # exact: a worker's growth with its regions (their tiles, caches and arenas)
-# exact, thick sheets at high |ΔRI|: a few rays in a thousand are guided along R by total reflection at the
-# walls, up to the event cap (birch's design maps: 11-46 of 35,000 rays at 1-2 mm), and build the
+# exact, thick sheets at high |ΔRI|: a few rays in a thousand are guided along R by total reflection at
+# the walls, up to the event cap (birch's design maps: 11-46 of 35,000 rays at 1-2 mm), and build the
 # distortion tiles along their strips: about GUIDED_TILES_PER_RAY x (|ΔRI| / 0.03)^3.1 x (thickness / 2 mm)^3.4
-# tiles a ray beyond its beam's region, measured on birch into air (500 rays a scene, one wood, 1-2 mm,
-# |ΔRI| 0.01-0.03: 0.6-24 tiles a ray, the fit within 1.3x from 0.5 a ray up), at most GUIDED_TILES_MAX a ray beyond what was
-# measured (a ray guided to the event cap builds about 250). Each such tile, with the guided rays' extra
-# interfaces, costs GUIDED_TILE_CPU_S (2.1 ms measured on a host 1.5x slower than this module's rates), and
-# a worker keeps them (docs/performance.md#rays-guided-along-r).
+# tiles a ray beyond its beam's region (benchmarks/guided_tiles.py: birch into air, 500 rays a scene, one
+# wood, 1-2 mm, |ΔRI| 0.01-0.03: 0.6-24 tiles a ray, the fit within 1.3x from 0.5 a ray up), and at most
+# GUIDED_TILES_MAX a ray beyond what was measured (a ray guided to the event cap builds about 250). Each
+# such tile, with the guided rays' extra interfaces, costs GUIDED_TILE_CPU_S at this module's host speed
+# (1.9-2.1 ms measured on hosts 1.5-1.9x slower), and a worker keeps them
+# (docs/performance.md#rays-guided-along-r).
 GUIDED_TILES_PER_RAY, GUIDED_TILES_MAX, GUIDED_TILE_CPU_S = 28.0, 60.0, 1.4e-3
 REGION_CPU_S_PER_BYTE = 1.7e-8  # exact: building a trace's regions (1.5 mm of birch: 0.8 CPU-s, nearly all tiles)
 INTERFACES_PER_PITCH = 2.0  # interfaces met per cell pitch crossed (birch 1.6-1.8, balsa 2.3: two walls and more)
