@@ -24,8 +24,11 @@ from ._slice import _eval_bucket, build_slice, candidate_table
 # --------------------------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
 def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0, gj0, dmax,
-               vessels, nv, stats):
+               vessels, nv, stats, need, ns):
     """Fill ``out[R, T, L]`` for T indices [j_lo, j_hi) of the block from one ply.
+
+    need, ns : with ``ns`` > 0, only voxel (i, j, k) with ``need[i // ns, j // ns, k // ns]`` is
+    filled, and slices with none are not built (the others keep what ``out`` held).
 
     ply : (cos θ, sin θ, ΔR, ΔT, ΔL), the rotation of the ply in the L-R plane and
     its offset.  Ply coordinates: R' = cos·R + sin·L + ΔR, T' = T + ΔT,
@@ -98,12 +101,18 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
         stop = start
         rmin = 1e300
         rmax = -1e300
+        wanted = ns == 0
         while stop < total and key[order[stop]] == kb:
             idx = order[stop]
             r = Rp[idx // nL, idx % nL]
             rmin = min(rmin, r)
             rmax = max(rmax, r)
+            if not wanted:
+                wanted = _needed(need, ns, idx // nL, idx % nL, j_lo, j_hi)
             stop += 1
+        if not wanted:
+            start = stop
+            continue
         if rotated:
             L = kb * q
         else:
@@ -122,7 +131,7 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
         nr = build_slice(seed, M, L, n_lo, m_lo, NR, NT, Nt, FE, FF, FJ, vessels, nv, VG, VB, VIDX,
                          rays, stats, CV, CF, cn, ck, ENDS_)
         ray_slice_tables(seed, M, L, rays, nr, RC)
-        reuse = not rotated and nr == n_last
+        reuse = not rotated and nr == n_last and ns == 0
         for r in range(nr):
             for f in range(7):
                 reuse = reuse and rays[r, f] == last[r, f]
@@ -135,6 +144,15 @@ def fill_block(out, seed, M, gstart, origin, voxel, j_lo, j_hi, ply, patch, gi0,
             candidate_table(FE, n_lo, m_lo, C4, FJ, CIJ)
         _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0,
                      gj0, G, seed, M, n_lo, m_lo, FE, FF, Nt, vessels[:nv], VG, VB, VIDX, rays, nr, RC,
-                     C4, SQ, SR, reuse, FJ, CIJ)
+                     C4, SQ, SR, reuse, FJ, CIJ, need, ns)
         stats[ST_VOXELS] += (stop - start) * (j_hi - j_lo)
         start = stop
+
+
+@njit(cache=True, nogil=True)
+def _needed(need, ns, i, k, j_lo, j_hi):
+    """Whether any voxel of column (i, ·, k) in T indices [j_lo, j_hi) is needed."""
+    for jc in range(j_lo // ns, (j_hi - 1) // ns + 1):
+        if need[i // ns, jc, k // ns] != 0:
+            return True
+    return False

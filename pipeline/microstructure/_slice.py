@@ -396,7 +396,7 @@ def _in_tip_wall(pR, pT, a, b, FE, Nt, FJ, CIJ):
 @njit(cache=True, nogil=True, error_model="numpy")
 def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, patch, gi0, gj0, G,
                  seed, M, n_lo, m_lo, FE, FF, Nt, vessels, VG, VB, VIDX, rays, nr, RC, C4, SQ, SR, reuse,
-                 FJ, CIJ):
+                 FJ, CIJ, need, ns):
     """Phases of the voxels of one slice bucket.
 
     Per point: a ray band (:func:`ray_cell_phase`), else the vessel cluster
@@ -410,6 +410,8 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
     SQ, SR : per (R, T) column of an unrotated ply, the squeezed T and ray row
         (-1: none) of :func:`_squeeze_and_classify`; written on every slice, read
         instead of it when ``reuse`` (this slice's ray table is the last one's).
+    need, ns : with ``ns`` > 0, only voxel (i, j, k) with ``need[i // ns, j // ns, k // ns]`` is
+        classified (the others are left as they are; the caller passes ``reuse`` False).
     """
     c = M[PITCH]
     inv_c = 1.0 / c
@@ -428,6 +430,8 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
         k = idx % np.uint64(nL)
         for jj in range(j_lo, j_hi):
             j = np.uint64(jj)
+            if ns > 0 and need[i // np.uint64(ns), j // np.uint64(ns), k // np.uint64(ns)] == 0:
+                continue
             if rotated:
                 pR, pT = pull_back(patch, gi0, gj0, G, Rp[i, k], Tp[j])
             else:

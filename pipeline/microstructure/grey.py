@@ -22,6 +22,8 @@ from numba import njit
 
 from ..params import Grid, ParameterError, WoodParams, check_voxel
 from ..rng import SCAN_NOISE, normal
+from . import _grey_uniform
+from ._grey_uniform import UniformVoxels
 from .model import generate_block
 from .store import ByteLRU
 
@@ -37,8 +39,13 @@ def grey_volume(params: WoodParams, grid: Grid, *, seed: int, supersample: int =
     wood of ``params`` and ``seed``: ``supersample``³ fine voxels a voxel, then the blur and the
     noise."""
     fine = _checked(params, grid, supersample, blur_um, noise)  # before the generation, not after
-    out = _clean(params, fine, supersample, seed, (0, 0, 0), grid.shape)
+    out = _clean(params, fine, supersample, seed, (0, 0, 0), grid.shape, _uniform(params, grid, seed, supersample))
     return degrade(out, grid.voxel_um, blur_um=blur_um, noise=noise, noise_seed=noise_seed)
+
+
+def _uniform(params, grid, seed, supersample) -> UniformVoxels | None:
+    """The proof of one-phase voxels where it pays (:func:`~._grey_uniform.applies`), else None."""
+    return UniformVoxels(params, grid, seed, supersample) if _grey_uniform.applies(params, grid) else None
 
 
 def _checked(params, grid, supersample, blur_um, noise) -> Grid:
@@ -51,17 +58,28 @@ def _checked(params, grid, supersample, blur_um, noise) -> Grid:
     return fine
 
 
-def _clean(params, fine: Grid, s: int, seed: int, first, shape) -> np.ndarray:
+def _clean(params, fine: Grid, s: int, seed: int, first, shape, uniform: UniformVoxels | None = None) -> np.ndarray:
     """The wall fractions of the voxels ``first`` + [0, ``shape``) of the scan whose fine grid is
-    ``fine`` (``s``³ fine voxels a voxel), generated in slabs along L."""
+    ``fine`` (``s``³ fine voxels a voxel), generated in slabs along L; with ``uniform``, only the
+    voxels it does not prove to lie in one phase are supersampled (the same numbers)."""
     nr, nt, nl = shape
     i0, j0, k0 = first
     out = np.empty(shape, np.float32)
     per_l = max(1, int(SLAB_FINE_VOXELS // (nr * nt * s ** 3)))  # voxel layers along L a slab
     for a in range(0, nl, per_l):
         b = min(nl, a + per_l)
-        block = generate_block(params, fine, (i0 * s, j0 * s, (k0 + a) * s), (nr * s, nt * s, (b - a) * s), seed=seed)
-        out[:, :, a:b] = block.reshape(nr, s, nt, s, b - a, s).mean(axis=(1, 3, 5), dtype=np.float64)
+        start, size = (i0 * s, j0 * s, (k0 + a) * s), (nr * s, nt * s, (b - a) * s)
+        if uniform is None:
+            block = generate_block(params, fine, start, size, seed=seed)
+            out[:, :, a:b] = block.reshape(nr, s, nt, s, b - a, s).mean(axis=(1, 3, 5), dtype=np.float64)
+            continue
+        known = uniform.decide((i0, j0, k0 + a), (nr, nt, b - a))
+        need = np.isnan(known)
+        if need.any():
+            block = generate_block(params, fine, start, size, seed=seed, need=need.view(np.uint8))
+            part = block.reshape(nr, s, nt, s, b - a, s).mean(axis=(1, 3, 5), dtype=np.float64)
+            known[need] = part[need]
+        out[:, :, a:b] = known
     return out
 
 
@@ -137,6 +155,7 @@ class LazyGreyScan:
         self.tiles = ByteLRU(self.cache_bytes)
         self.tiles_generated = 0
         self.generate_s = 0.0  # CPU seconds spent generating tiles
+        self.uniform = _uniform(params, grid, seed, supersample)
 
     def _tile(self, key) -> np.ndarray:
         kept = self.tiles.get(key)
@@ -147,7 +166,7 @@ class LazyGreyScan:
         hi = [min(a + TILE, n) for a, n in zip(lo, self.shape)]
 
         def clean(a, b):
-            return _clean(self.params, self.fine, self.s, self.seed, a, tuple(y - x for x, y in zip(a, b)))
+            return _clean(self.params, self.fine, self.s, self.seed, a, tuple(y - x for x, y in zip(a, b)), self.uniform)
         if self.blur_um > 0:
             part = gaussian_part(clean, lo, hi, self.shape, self.blur_um / self.grid.voxel_um, np.float32)
         else:

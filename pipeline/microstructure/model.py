@@ -243,6 +243,7 @@ def generate_block(
     *,
     seed: int,
     stats: np.ndarray | None = None,
+    need: np.ndarray | None = None,
 ) -> np.ndarray:
     """Generate voxels ``[start, start + shape)`` of the volume on ``grid``.
 
@@ -259,6 +260,10 @@ def generate_block(
         Non-negative seed; every random value is a hash of it.
     stats : ndarray of int64, optional
         Work counters (see ``STAT_NAMES``) incremented in place.
+    need : ndarray of uint8, optional
+        Only the voxels (i, j, k) of the block with ``need[i // s, j // s, k // s]`` nonzero are
+        generated, ``s`` = ``shape[0] // need.shape[0]`` (the same along every axis); the others
+        are 0.  Those generated are the same as without ``need``.
 
     Returns
     -------
@@ -272,7 +277,15 @@ def generate_block(
     org = np.asarray(grid.origin_um, dtype=np.float64)
     gstart = np.asarray(start, dtype=np.int64)
     nR, nT, nL = shape
-    buf = np.empty((nR, nT, nL), np.uint8)
+    if need is None:
+        buf = np.empty((nR, nT, nL), np.uint8)
+        need, ns = np.zeros((1, 1, 1), np.uint8), 0
+    else:
+        buf = np.zeros((nR, nT, nL), np.uint8)
+        need = np.ascontiguousarray(need, np.uint8)
+        ns = nR // need.shape[0] if need.ndim == 3 and need.shape[0] > 0 else 0
+        if ns < 1 or any(n != m * ns for n, m in zip(shape, need.shape)):
+            raise ValueError(f"need of shape {need.shape} does not divide the block {tuple(shape)}")
     lo = org + gstart * v
     hi = org + (gstart + np.asarray(shape)) * v
     t_centres = org[1] + (gstart[1] + np.arange(nT) + 0.5) * v
@@ -299,5 +312,5 @@ def generate_block(
         )
         fill_block(buf, pseed, M, gstart, org, v, j_lo, j_hi,
                      np.array([cs, sn, oR, oT, oL]), patch, gi0, gj0, dmax,
-                     vessels[:max(nv, 1)], nv, stats)
+                     vessels[:max(nv, 1)], nv, stats, need, ns)
     return buf

@@ -14,7 +14,7 @@ from . import _constants as K
 from ._surface_cells import new_cache
 from .model import N_STATS, _patch, _plies, _tile, model_constants, tile_range
 from ._surface_rows import MAX_PRIMS, N_COLS, VBUCKET, VESSEL_REACH, rates
-from .surface import evaluate_at
+from .surface import clearance, evaluate_at
 
 
 def lipschitz_of_pull_back(patch: np.ndarray, G: float) -> float:
@@ -208,15 +208,22 @@ def context_tuple(ctx: dict) -> tuple:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _phases(points, lq, ctx, cache):
+def _phases(points, lq, ctx, cache, clr):
     out = np.empty(points.shape[0], np.uint8)
     P = np.empty((MAX_PRIMS, N_COLS))
     every = np.zeros(5)
     for i in range(points.shape[0]):
-        out[i], _ = evaluate_at(points[i, 0], points[i, 1], points[i, 2], lq, ctx, P, cache, every)
+        out[i], n = evaluate_at(points[i, 0], points[i, 1], points[i, 2], lq, ctx, P, cache, every)
+        if clr.shape[0] > 0:  # a full row table may have lost rows: no ball is proven
+            clr[i] = clearance(P, n) if n < MAX_PRIMS else 0.0
     return out
 
 
-def phases(points, lq, ctx):
-    """Phase at each of ``points`` (N, 3) [µm] (255: outside the context's region)."""
-    return _phases(np.ascontiguousarray(points, np.float64), float(lq), ctx, new_cache())
+def phases(points, lq, ctx, *, clearances: np.ndarray | None = None, cache=None) -> np.ndarray:
+    """Phase at each of ``points`` (N, 3) [µm] (255: outside the context's region); with
+    ``clearances`` (N floats), each point's clearance [µm] written there (the radius of a ball in
+    which the phase cannot change; :func:`~pipeline.microstructure.surface.clearance`).  ``cache``:
+    a :func:`~pipeline.microstructure._surface_cells.new_cache` to reuse (one a thread)."""
+    clr = np.empty(0) if clearances is None else clearances
+    return _phases(np.ascontiguousarray(points, np.float64), float(lq), ctx,
+                   new_cache() if cache is None else cache, clr)
