@@ -27,6 +27,7 @@ from .region import context_tuple, phases, region_context
 SUPER_UM = 64.0  # a context covers whole squares of this side in R and L (and the grid's T)
 CONTEXTS = 8  # contexts kept
 SLACK = 1e-9  # [µm] added to every radius, with a relative 1e-9: the rounding of the centres
+_OFFSETS = {side: np.array(list(np.ndindex(side, side, side)), np.int64) for side in (1, 2, 4)}
 
 
 def applies(params, grid) -> bool:
@@ -94,10 +95,10 @@ class UniformVoxels:
             self.evaluations += len(starts)
             radius = 0.5 * h * np.sqrt((ext.astype(np.float64) ** 2).sum(axis=1))
             ok = (ph != 255) & (clr > radius * (1.0 + SLACK) + self.margin)
-            for d in np.ndindex(side, side, side):
-                sel = ok & (np.asarray(d) < ext).all(axis=1)
-                idx = starts[sel] + np.asarray(d)
-                out[idx[:, 0], idx[:, 1], idx[:, 2]] = ph[sel]
+            offsets = _OFFSETS[side]  # every voxel of a box of this side, those past its extent masked
+            inside = (offsets[None, :, :] < ext[ok][:, None, :]).all(axis=2)
+            idx = (starts[ok][:, None, :] + offsets[None, :, :])[inside]
+            out[idx[:, 0], idx[:, 1], idx[:, 2]] = np.repeat(ph[ok], inside.sum(axis=1))
             starts, ext = starts[~ok], ext[~ok]
             ends = starts + ext
         return out
