@@ -152,6 +152,7 @@ ISO_1MM = --thickness-mm 1 --voxels 1,0.5 --scans clean --side-um 800 --beam-um 
 bench-iso: install
 	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxels 1,0.5,0.25 --rays 4000 --out results/iso.json
 	$(BIN)/python benchmarks/bench_iso.py --preset birch $(ISO_1MM)
+	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 1 --voxels 1 --scans "blur 0.3 µm + noise 0.02" --side-um 800 --beam-um 100 --rays 4000 --merge --out results/iso.json
 	$(BIN)/python benchmarks/bench_iso.py --preset balsa $(ISO_1MM)
 	$(BIN)/python benchmarks/iso_normals.py results/iso_normals.json
 	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxels 0.5 --scans clean --rays 4000 --woods 25 --methods iso,accurate --out results/iso_25woods.json
