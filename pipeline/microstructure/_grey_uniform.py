@@ -44,7 +44,7 @@ class UniformVoxels:
         self.params, self.grid, self.seed, self.s = params, grid, int(seed), int(supersample)
         self.t_max = grid.origin_um[1] + grid.shape[1] * grid.voxel_um
         rotated = params.laminate is not None and any(math.sin(math.radians(a)) != 0.0 for a in params.laminate)
-        # A rotated ply's fine voxels are classified at L' rounded to a quarter of a fine voxel.
+        # A rotated ply's fine voxels are classified at L' rounded to half a fine voxel: moved by a quarter.
         self.margin = SLACK + (grid.voxel_um / self.s / 4.0 if rotated else 0.0)
         self.contexts: collections.OrderedDict = collections.OrderedDict()
         self._local = threading.local()
