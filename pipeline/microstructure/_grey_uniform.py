@@ -36,6 +36,11 @@ def applies(params, grid) -> bool:
     return model_constants(params)[K.SHAPE] == 1.0 and grid.origin_um[1] >= 0.0
 
 
+def for_scan(params, grid, seed: int, supersample: int) -> UniformVoxels | None:
+    """The proof for the scan of ``grid`` where it applies (:func:`applies`), else None."""
+    return UniformVoxels(params, grid, seed, supersample) if applies(params, grid) else None
+
+
 class UniformVoxels:
     """For parts of the scan of ``grid`` (voxels ``supersample`` times the fine grid's), the wall
     fraction of every voxel proven to lie in one phase, NaN elsewhere."""
@@ -85,7 +90,7 @@ class UniformVoxels:
         ext = np.minimum(4, size - starts)
         for side in (4, 2, 1):
             if side < 4:  # the parts of the boxes left, of this side
-                d = np.array([(a, b, c) for a in range(2) for b in range(2) for c in range(2)]) * side
+                d = _OFFSETS[2] * side
                 starts = (starts[:, None, :] + d[None, :, :]).reshape(-1, 3)
                 ext = np.minimum(side, (ends[:, None, :] - starts.reshape(len(ends), 8, 3))).reshape(-1, 3)
                 keep = (ext > 0).all(axis=1)

@@ -22,8 +22,7 @@ from numba import njit
 
 from ..params import Grid, ParameterError, WoodParams, check_voxel
 from ..rng import SCAN_NOISE, normal
-from . import _grey_uniform
-from ._grey_uniform import UniformVoxels
+from ._grey_uniform import UniformVoxels, for_scan
 from .model import generate_block
 from .store import ByteLRU
 
@@ -39,13 +38,8 @@ def grey_volume(params: WoodParams, grid: Grid, *, seed: int, supersample: int =
     wood of ``params`` and ``seed``: ``supersample``³ fine voxels a voxel, then the blur and the
     noise."""
     fine = _checked(params, grid, supersample, blur_um, noise)  # before the generation, not after
-    out = _clean(params, fine, supersample, seed, (0, 0, 0), grid.shape, _uniform(params, grid, seed, supersample))
+    out = _clean(params, fine, supersample, seed, (0, 0, 0), grid.shape, for_scan(params, grid, seed, supersample))
     return degrade(out, grid.voxel_um, blur_um=blur_um, noise=noise, noise_seed=noise_seed)
-
-
-def _uniform(params, grid, seed, supersample) -> UniformVoxels | None:
-    """The proof of one-phase voxels where it pays (:func:`~._grey_uniform.applies`), else None."""
-    return UniformVoxels(params, grid, seed, supersample) if _grey_uniform.applies(params, grid) else None
 
 
 def _checked(params, grid, supersample, blur_um, noise) -> Grid:
@@ -155,7 +149,7 @@ class LazyGreyScan:
         self.tiles = ByteLRU(self.cache_bytes)
         self.tiles_generated = 0
         self.generate_s = 0.0  # CPU seconds spent generating tiles
-        self.uniform = _uniform(params, grid, seed, supersample)
+        self.uniform = for_scan(params, grid, seed, supersample)
 
     def _tile(self, key) -> np.ndarray:
         kept = self.tiles.get(key)
