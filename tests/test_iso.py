@@ -13,7 +13,7 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.optics.interface import TRANSMITTED, TRAPPED
-from pipeline.optics.iso import IsoVolume, otsu_threshold
+from pipeline.optics.iso import SMOOTH_UM, IsoVolume, otsu_threshold
 from pipeline.params import ParameterError
 
 
@@ -165,6 +165,11 @@ def test_a_generated_grey_scan_is_traced_end_to_end(tmp_path, capsys):
                  "--delta-ri", "0.01", "--beam-um", "10", "--rays", "40", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["iso"] == 0.5 and out["iso_from"] == "given" and out["n_rays"] == 40
+    assert out["smooth_um"] == SMOOTH_UM == 0.5  # the pre-filter unless told
+    assert main(["trace", "--volume", str(scan), "--method", "iso", "--iso", "0.5", "--voxel-um", "0.5",
+                 "--delta-ri", "0.01", "--beam-um", "10", "--rays", "40", "--smooth-um", "0"]) == 0
+    line = capsys.readouterr().out
+    assert "method iso at grey level 0.5," in line and "smoothed" not in line  # 0: the raw interpolant
     assert main(["generate", "--preset", "birch", "--size-um", "30,20,30", "--noise", "0.1",
                  "--out", str(tmp_path / "v.zarr")]) == 2
     assert "`--noise` applies to --grey" in capsys.readouterr().err

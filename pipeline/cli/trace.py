@@ -43,7 +43,8 @@ def add_trace(sub):
     p.add_argument("--iso", default=None, help="with --method iso: the wall's grey level (default: Otsu's "
                                                "threshold of the volume, stated in the output)")
     p.add_argument("--smooth-um", default=None, help="with --method iso: smooth the grey levels by a Gaussian of "
-                                                     "this σ [µm] before tracing (against noise; default 0)")
+                                                     "this σ [µm] before tracing (against noise and the facets of "
+                                                     "the interpolant; default 0.5, 0: none)")
     p.add_argument("--exit", default="internal", help="angles inside the sample (internal) or in air")
     p.add_argument("--fresnel", action="store_true", help="partial Fresnel reflection")
     p.add_argument("--step-vox", default=None, help="paper marching step [voxels] (default 2)")
@@ -95,6 +96,7 @@ def cmd_trace(args) -> int:
 
 def _trace_job(args):
     """``twray trace``'s arguments as a TraceJob (each checked, one line naming the field)."""
+    from ..optics.iso import SMOOTH_UM
     from ..optics.references import reference
     from ..optics.settings import METHODS, Optics, check_method, settings_for
     from ..trace_job import TraceJob
@@ -128,7 +130,7 @@ def _trace_job(args):
         if settings.method != "iso":
             raise ParameterError(f"`--iso` applies to --method iso, got --method {settings.method}")
         iso = number(args.iso, "iso")
-    smooth_um = 0.0
+    smooth_um = SMOOTH_UM if settings.method == "iso" else 0.0
     if args.smooth_um is not None:
         if settings.method != "iso":
             raise ParameterError(f"`--smooth-um` applies to --method iso, got --method {settings.method}")
