@@ -144,15 +144,16 @@ bench-accuracy: install
 	$(BIN)/python benchmarks/bench_accuracy.py --out results/accuracy.json
 
 ## Grey-level scans traced with iso, and binarised with accurate and fast, beside exact on the same wood and rays
-## (birch 0.25 mm at 1, 0.5 and 0.25 µm, clean and blurred+noisy; birch 1 mm at 1 and 0.5 µm, clean, and at 1 µm
-## blurred+noisy; balsa 1 mm at 1 µm, clean; 5 woods x 4000 rays each;
+## (birch 0.25 mm at 1, 0.5 and 0.25 µm and birch 1 mm at 1 and 0.5 µm, clean and blurred+noisy;
+## balsa 1 mm at 1 µm, clean; 5 woods x 4000 rays each;
 ## scans generated where the rays read them; the reference lattices of results/accuracy.md as grey scans)
-## -> results/iso*.json, results/iso.md and the scans' section of results/accuracy.md (about 4.5 hours on 2 cores).
+## -> results/iso*.json, results/iso.md and the scans' section of results/accuracy.md (about 6 hours on 2 cores).
 ISO_1MM = --thickness-mm 1 --scans clean --side-um 800 --beam-um 100 --rays 4000 --out results/iso.json
 bench-iso: install
 	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxels 1,0.5,0.25 --rays 4000 --out results/iso.json
 	$(BIN)/python benchmarks/bench_iso.py --preset birch $(ISO_1MM) --voxels 1,0.5
 	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 1 --voxels 1 --scans "blur 0.3 µm + noise 0.02" --side-um 800 --beam-um 100 --rays 4000 --merge --out results/iso.json
+	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 1 --voxels 0.5 --scans "blur 0.3 µm + noise 0.02" --side-um 800 --beam-um 100 --rays 4000 --methods "iso,iso smoothed 0.5 µm,accurate" --cache-mb 5000 --merge --out results/iso.json
 	$(BIN)/python benchmarks/bench_iso.py --preset balsa $(ISO_1MM) --voxels 1
 	$(BIN)/python benchmarks/iso_normals.py results/iso_normals.json
 	$(BIN)/python benchmarks/bench_iso.py --preset birch --thickness-mm 0.25 --voxels 0.5 --scans clean --rays 4000 --woods 25 --methods iso,accurate --out results/iso_25woods.json
