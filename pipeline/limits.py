@@ -13,6 +13,7 @@ fit is run with a warning.  What would take longer than
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -76,9 +77,15 @@ SHARD_BYTES, SHARD_RAY_BYTES, ENTRY_BYTES, DATASET_BYTES = 7e3, 120.0, 2.2e3, 15
 # pool and the tasks' overhead; per study its Dataset (xarray, Zarr).  Fitted with the startups to a
 # small `exact` study (4 scenes, 5.9 CPU-s in all) and Table 1's study 2 at --scale quick (30, 20.8).
 SCENE_CPU_S, DATASET_CPU_S = 0.3, 0.5
-# A value's pool: every estimator on 2000 resamples of its woods (and of its rays), about linear in
-# the rays pooled (benchmarks/bench_pool.py: 0.86 CPU-s for 3 woods × 200 rays, 8.2 for 40 × 1000).
-POOL_CPU_S, POOL_CPU_S_PER_RAY = 0.9, 1.9e-4
+# A value's pool: every estimator on 2000 resamples of its woods and of its rays (benchmarks/bench_pool.py,
+# measured on a host half as fast as this module's: the old pool's cost in the same hour was twice
+# the one its constants were fitted to).  One wood (a trace's summary): every estimator's interval over
+# its rays.  Several woods: the fits to resamples of woods, a fraction f of them distinct (a resample
+# drawn twice is fitted once: f = 0.06 for 5 woods, 1 for 16 or more), about POOL_CPU_S + f ·
+# POOL_FIT_CPU_S + rays · (POOL_CPU_S_PER_RAY + f · POOL_FIT_CPU_S_PER_RAY): 0.08 CPU-s for 3 woods ×
+# 200 rays, 0.34 for 5 × 1000, 9.7 for 40 × 1000.
+POOL_ONE_CPU_S, POOL_ONE_CPU_S_PER_RAY = 0.55, 3e-4
+POOL_CPU_S, POOL_FIT_CPU_S, POOL_CPU_S_PER_RAY, POOL_FIT_CPU_S_PER_RAY = 0.05, 1.1, 3.3e-5, 1.8e-4
 SPREAD = 1.25  # chunks generated around the beam's column by spreading rays, as a factor
 CHUNK = 64  # voxels along a chunk edge in the study cache
 SHOW_ESTIMATE_S = 60.0  # commands estimated above this many CPU-seconds print their estimate first
@@ -186,10 +193,34 @@ def stored_bytes(voxels: float, voxel_um: float, wood=None) -> float:
     return voxels * DISK_BYTES_PER_VOXEL * factor * math.sqrt(voxel_um / 0.5)
 
 
+@functools.lru_cache(maxsize=None)
+def distinct_resamples(woods: int) -> int:
+    """How many of a pool's resamples of ``woods`` woods are distinct (each is fitted once): counted
+    on the draws of one seed (:func:`pipeline.summary.woods_weights`; another seed's differ by a few)."""
+    import numpy as np
+
+    from .summary import N_BOOT, woods_weights
+
+    if woods < 2:
+        return 0
+    return len(np.unique(woods_weights(woods, N_BOOT, np.random.default_rng(0)), axis=0))
+
+
+def pool_cpu_s(woods: int, rays: int) -> float:
+    """CPU seconds of reducing ``rays`` traced rays of ``woods`` woods to every estimator's widths
+    and haze with their intervals (a value's pool; with one wood, a trace's summary)."""
+    from .summary import N_BOOT
+
+    if woods < 2:
+        return POOL_ONE_CPU_S + rays * POOL_ONE_CPU_S_PER_RAY
+    f = distinct_resamples(woods) / N_BOOT
+    return POOL_CPU_S + f * POOL_FIT_CPU_S + rays * (POOL_CPU_S_PER_RAY + f * POOL_FIT_CPU_S_PER_RAY)
+
+
 def summary_estimate(rays: int) -> Estimate:
-    """Reducing ``rays`` traced rays to every estimator's widths and haze with their intervals (a
-    value's pool, or a trace's summary: about the same work)."""
-    return Estimate(POOL_CPU_S + rays * POOL_CPU_S_PER_RAY, 0.0, 0.0)
+    """Reducing ``rays`` traced rays of one wood to every estimator's widths and haze with their
+    intervals (a trace's summary)."""
+    return Estimate(pool_cpu_s(1, rays), 0.0, 0.0)
 
 
 def startup(processes: int, *, kernels: bool = True) -> Estimate:
@@ -267,6 +298,7 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
     scenes = [dataclasses.replace(s, rays=s.target.max_rays)  # traced to a precision: at most its cap of rays
               if s.target is not None and s.target.over == "rays" else s for s in scenes]
     guided = {}  # exact: per wood, the tiles its scenes' guided rays build, which a worker keeps
+    pools = {}  # per value: its woods and their rays
     for s in scenes:
         if s.wood is not None and METHODS.get(s.settings.method) == "surfaces":
             key = (repr(s.wood), s.seed)
@@ -293,10 +325,10 @@ def study_estimate(scenes, *, shard_rays: int) -> Estimate:
         # The scene's rays read back at once for its summary and Dataset.
         reduce = BASE_MEMORY + s.rays * (RAY_BYTES + DATASET_RAY_BYTES * len(scenes))
         written = n_shards * SHARD_BYTES + s.rays * (SHARD_RAY_BYTES + DATASET_RAY_BYTES) + 2 * ENTRY_BYTES
-        est = est + Estimate(shard.cpu_s * n_shards - again + SCENE_CPU_S + s.rays * POOL_CPU_S_PER_RAY,
-                             max(shard.memory + kept, reduce), written)
-    pools = sum(1 for s in scenes if s.realisation == 0)  # one pool a value, over its woods
-    est = est + Estimate(sum(regions.values()) + POOL_CPU_S * pools, 0.0, 0.0)
+        est = est + Estimate(shard.cpu_s * n_shards - again + SCENE_CPU_S, max(shard.memory + kept, reduce), written)
+        value = repr(dataclasses.replace(s, seed=0, realisation=0, rays=0))  # one pool a value, over its woods
+        pools[value] = (pools.get(value, (0, 0))[0] + 1, pools.get(value, (0, 0))[1] + s.rays)
+    est = est + Estimate(sum(regions.values()) + sum(pool_cpu_s(w, n) for w, n in pools.values()), 0.0, 0.0)
     return est + _woods(woods) + (Estimate(DATASET_CPU_S, 0.0, DATASET_BYTES) if scenes else Estimate())
 
 

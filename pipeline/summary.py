@@ -105,9 +105,15 @@ class Angles:
         return fwhm(self.x, self.spec.of(est)) if self.x.size else float("nan")
 
     def woods_draws(self, est: str, weights: np.ndarray) -> np.ndarray:
-        """The estimate on each resample of woods (rows of ``weights``)."""
+        """The estimate on each resample of woods (rows of ``weights``).  A resample drawn more than
+        once is estimated once (a row's estimate depends on that row alone): R woods have at most
+        C(2R − 1, R) distinct resamples, 126 for 5 woods, whatever the number of rows."""
         if self.x.size < 2:
             return np.full(len(weights), np.nan)
+        distinct, back = np.unique(weights, axis=0, return_inverse=True)
+        return self._woods_draws(est, distinct)[np.reshape(back, -1)]
+
+    def _woods_draws(self, est: str, weights: np.ndarray) -> np.ndarray:
         if est == LORENTZ_MLE:
             return np.array([self._mle(np.concatenate([np.tile(p, int(w)) for p, w in zip(self.parts, row) if w]))
                              for row in weights])
@@ -120,20 +126,33 @@ class Angles:
     def ray_draws(self, est: str, picks: list) -> np.ndarray:
         """The estimate on each resample of rays: ``picks`` holds per wood an array (rows, n_k) of
         ray indices."""
-        rows = picks[0].shape[0] if picks else 0
-        if self.x.size < 2:
-            return np.full(rows, np.nan)
-        if est == LORENTZ_MLE:
-            return np.array([self._mle(np.concatenate([p[i[b]] for p, i in zip(self.parts, picks)])) for b in range(rows)])
+        return self.draws_of(est, [self.ray_sample(est, picks)])
+
+    def ray_sample(self, est: str, picks: list):
+        """What :meth:`draws_of` needs of the resamples of rays ``picks``: their binned counts (rows, m)
+        for an estimator on a grid, the picks themselves for ``lorentz-mle`` (whose fit needs the angles)."""
+        if self.x.size < 2 or est == LORENTZ_MLE or self._grid(est) is None:
+            return picks
         grid = self._grid(est)
-        if grid is None:
-            return np.zeros(rows)
+        rows = picks[0].shape[0]
         flat = []
         for p, i in zip(self.parts, picks):
             b = grid.index(p)[i]
             flat.append((b + grid.m * np.arange(rows)[:, None])[b >= 0])
-        counts = np.bincount(np.concatenate(flat), minlength=rows * grid.m).reshape(rows, grid.m)
-        return self.of_counts(est, counts.astype(np.float64))
+        return np.bincount(np.concatenate(flat), minlength=rows * grid.m).reshape(rows, grid.m).astype(np.float64)
+
+    def draws_of(self, est: str, samples: list) -> np.ndarray:
+        """The estimates of consecutive :meth:`ray_sample` results, in order.  On a grid they are
+        fitted together, as one array of counts (each row's fit depends on that row alone; one call
+        instead of one per batch of resamples)."""
+        if self.x.size < 2:
+            return np.full(sum(s[0].shape[0] if s else 0 for s in samples), np.nan)
+        if est == LORENTZ_MLE:
+            return np.array([self._mle(np.concatenate([p[i[b]] for p, i in zip(self.parts, picks)]))
+                             for picks in samples for b in range(picks[0].shape[0] if picks else 0)])
+        if self._grid(est) is None:
+            return np.zeros(sum(s[0].shape[0] if s else 0 for s in samples))
+        return self.of_counts(est, np.concatenate(samples))
 
 
 def fwhm_ci(theta_deg: np.ndarray, *, n_boot: int = N_BOOT, seed: int = 0, level: float = LEVEL,
@@ -144,9 +163,9 @@ def fwhm_ci(theta_deg: np.ndarray, *, n_boot: int = N_BOOT, seed: int = 0, level
         return [float("nan"), float("nan")]
     rng = np.random.default_rng(seed)
     a = Angles([x], FwhmSpec(estimator))
-    draws = np.concatenate([a.ray_draws(estimator, [rng.integers(0, x.size, (min(_CHUNK, n_boot - lo), x.size))])
-                            for lo in range(0, n_boot, _CHUNK)])
-    return percentile_interval(draws, level)
+    samples = [a.ray_sample(estimator, [rng.integers(0, x.size, (min(_CHUNK, n_boot - lo), x.size))])
+               for lo in range(0, n_boot, _CHUNK)]
+    return percentile_interval(a.draws_of(estimator, samples), level)
 
 
 def _components(each: np.ndarray, ray_var: np.ndarray) -> dict:
@@ -220,9 +239,9 @@ def reduce_angles(parts: list, *, spec: FwhmSpec = FwhmSpec(), n_boot: int = N_B
             rows = min(_CHUNK, n_boot - lo)
             picks = [rng.integers(0, n, (rows, n)) for n in sizes]
             for (q, e), acc in draws.items():
-                acc.append(angles[q].ray_draws(e, picks))
+                acc.append(angles[q].ray_sample(e, picks))
         for (q, e), acc in draws.items():
-            ci = percentile_interval(np.concatenate(acc), level)
+            ci = percentile_interval(angles[q].draws_of(e, acc), level)
             if e == spec.estimator:
                 ray_ci[q] = ci
             if n_real == 1:

@@ -167,3 +167,23 @@ def test_the_compiled_cauchy_fit_takes_numpys_steps_bit_for_bit():
     assert ok and step[0] == want[0] and step[1] == want[1] and slope == float(want @ grad)
     fit_loc, fit_g = cauchy_newton(x, loc, log_g)
     assert abs(fit_loc - 3.0) < 0.1 and abs(fit_g - 0.7) < 0.1
+
+
+def test_each_resample_is_estimated_on_its_own_whatever_is_estimated_with_it():
+    """Resamples are estimated together (a resample of woods drawn twice once; the grids' resamples
+    of rays in one fit): each must get the estimate it gets alone, bit for bit."""
+    rng = np.random.default_rng(21)
+    parts = [0.1 * k + rng.standard_cauchy(60 + 20 * k) for k in range(4)]
+    a = Angles(parts, FwhmSpec())
+    weights = woods_weights(4, 40, rng)
+    assert len(np.unique(weights, axis=0)) < len(weights)  # some resample is drawn more than once
+    for est in ESTIMATORS:
+        together = a.woods_draws(est, weights)
+        alone = np.array([a.woods_draws(est, row[None])[0] for row in weights])
+        np.testing.assert_array_equal(together, alone, err_msg=est)
+        batches = [[rng.integers(0, p.size, (m, p.size)) for p in parts] for m in (3, 1, 5)]
+        together = a.draws_of(est, [a.ray_sample(est, picks) for picks in batches])
+        alone = np.concatenate([[a.ray_draws(est, [i[b:b + 1] for i in picks])[0] for b in range(len(picks[0]))]
+                                for picks in batches])
+        np.testing.assert_array_equal(together, alone, err_msg=est)
+        assert np.isfinite(together).all() and len(np.unique(together)) > 1

@@ -200,7 +200,7 @@ def test_a_study_generates_each_wood_once_and_traces_every_scene_by_shards():
     two_values = study_estimate([one, other_value], shard_rays=500)
     rays_written = two_values.disk - voxels * limits.DISK_BYTES_PER_VOXEL  # one wood, then the rays' entries
     assert rays_written > 0  # how much: test_a_studys_disk_estimate_is_within_1_5x_of_what_it_writes
-    pool = limits.POOL_CPU_S + 1000 * limits.POOL_CPU_S_PER_RAY  # a value's pool of its 1000 rays
+    pool = limits.pool_cpu_s(1, 1000)  # a value's pool of its one wood's 1000 rays
     assert two_values.cpu_s == pytest.approx(4 * shard.cpu_s + voxels / limits.GENERATE_VOXELS_PER_CPU_S["ellipse"]
                                              + 2 * (limits.SCENE_CPU_S + pool) + limits.DATASET_CPU_S)
     # Peak memory: one value's rays read back at once, for every scene's Dataset.
@@ -226,7 +226,7 @@ def test_an_exact_woods_region_is_costed_once_however_its_rays_are_sharded_and_i
     region = limits.surface_region_bytes(40.0, 1000.0, 14.5) * limits.REGION_CPU_S_PER_BYTE
     bare = trace_estimate(rays=1000, beam_um=40.0, thickness_um=1000.0, voxel_um=0.5, pitch_um=14.5,
                           method="exact", wood=False, store=True, generated=False)
-    pool = limits.POOL_CPU_S + 1000 * limits.POOL_CPU_S_PER_RAY  # a value's pool of its 1000 rays
+    pool = limits.pool_cpu_s(1, 1000)  # a value's pool of its one wood's 1000 rays
 
     def guided(dri):  # the tiles of rays guided along R: per ray, not per region
         return 1000 * limits.guided_tiles_per_ray(1000.0, dri) * limits.GUIDED_TILE_CPU_S
@@ -238,7 +238,8 @@ def test_an_exact_woods_region_is_costed_once_however_its_rays_are_sharded_and_i
                                              + guided(0.01) + guided(0.02) + limits.DATASET_CPU_S)
     two_woods = study_estimate([scene, dataclasses.replace(scene, seed=2, realisation=1)], shard_rays=1000)
     # Another wood of the same value: its region again, and its rays in the value's one pool.
-    assert two_woods.cpu_s == pytest.approx(two_values.cpu_s + region - limits.POOL_CPU_S - guided(0.02) + guided(0.01))
+    assert two_woods.cpu_s == pytest.approx(two_values.cpu_s + region - 2 * pool + limits.pool_cpu_s(2, 2000)
+                                            - guided(0.02) + guided(0.01))
 
 
 def test_the_tiles_of_rays_guided_along_r_are_costed_in_thick_sheets_at_high_contrast_only():
@@ -340,3 +341,21 @@ def test_each_commands_estimate_is_within_1_5x_of_what_it_uses():
     assert 1 / HOST_SPREAD <= host <= HOST_SPREAD, {c: r["ratio"] for c, r in runs.items()}
     off = {case: _off(r, host) for case, r in runs.items()}
     assert not any(off.values()), (host, {c: (o, runs[c]["estimate"], runs[c]["used"]) for c, o in off.items() if o})
+
+
+def test_a_pools_distinct_resamples_of_woods_are_as_many_as_the_multinomial_draws_give():
+    """Each distinct resample of woods is fitted once, so a pool's cost follows their number:
+    against its expectation over every resample of R woods (a multiset of R draws of R, drawn with
+    the multinomial probability R!/(Π c!)/R^R) in 2000 draws."""
+    import itertools
+
+    for woods in (2, 3, 4, 5, 6):
+        mean = var = 0.0
+        for c in itertools.product(range(woods + 1), repeat=woods):
+            if sum(c) == woods:
+                p = math.factorial(woods) / math.prod(math.factorial(k) for k in c) / woods ** woods
+                q = 1.0 - (1.0 - p) ** 2000
+                mean, var = mean + q, var + q * (1.0 - q)
+        assert abs(limits.distinct_resamples(woods) - mean) <= 3.0 * math.sqrt(var) + 0.5, woods
+    assert limits.distinct_resamples(40) == 2000  # 40 woods: every resample differs
+    assert limits.pool_cpu_s(5, 5000) < limits.pool_cpu_s(40, 5000) / 5
