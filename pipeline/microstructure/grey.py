@@ -24,7 +24,7 @@ from ..params import Grid, ParameterError, WoodParams, check_voxel
 from ..rng import SCAN_NOISE, normal
 from ._grey_uniform import UniformVoxels, for_scan
 from .model import generate_block
-from .store import ByteLRU
+from ..lru import ByteLRU
 
 SLAB_FINE_VOXELS = 32e6  # fine voxels generated at a time (memory: one byte each)
 TILE = 16  # LazyGreyScan generates tiles of TILE³ voxels (16: a third less generated than 32 around rays)

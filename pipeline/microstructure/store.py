@@ -28,7 +28,6 @@ from __future__ import annotations
 import os
 import shutil
 import threading
-from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ import zarr
 
 from .. import __version__, versions
 from ..cache import cache_key
+from ..lru import ByteLRU
 from ..params import Grid, WoodParams
 from ..publish import staged_path
 from .model import generate_block
@@ -49,48 +49,6 @@ T_CHUNKS = 256  # chunks held on disk along T (8 mm with 64-voxel chunks of 0.5 
 # again bit-packed, 7× smaller (pipeline.optics.sources.PackedMemo).  At 6 GiB
 # the three Figure 5 images peaked at 3.4 GB RSS; at 512 MiB 1.4 GB, same time.
 MEMORY_BYTES = 512 << 20
-
-class ByteLRU:
-    """A thread-safe mapping that drops its least recently used entries beyond
-    ``limit`` bytes (keeping at least the newest); entries are never replaced."""
-
-    def __init__(self, limit: int | None = None):
-        self._limit = limit
-        self.used = 0
-        self._entries: OrderedDict = OrderedDict()
-        self._lock = threading.Lock()
-
-    @property
-    def limit(self) -> int:
-        return self._limit
-
-    def get(self, key):
-        """The entry ``key`` (now the most recently used), or None."""
-        with self._lock:
-            entry = self._entries.get(key)
-            if entry is None:
-                return None
-            self._entries.move_to_end(key)
-            return entry[0]
-
-    def put(self, key, value, nbytes: int) -> None:
-        """Add ``value`` of ``nbytes`` as ``key`` unless it is there already."""
-        limit = self.limit
-        with self._lock:
-            if key in self._entries:
-                self._entries.move_to_end(key)
-                return
-            self._entries[key] = (value, nbytes)
-            self.used += nbytes
-            while self.used > limit and len(self._entries) > 1:
-                _, (_, size) = self._entries.popitem(last=False)
-                self.used -= size
-
-    def clear(self) -> None:
-        with self._lock:
-            self._entries.clear()
-            self.used = 0
-
 
 _memory = ByteLRU(MEMORY_BYTES)
 _memory_lock = threading.Lock()

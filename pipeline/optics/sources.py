@@ -18,7 +18,7 @@ import numpy as np
 
 from ..microstructure.model import generate_block
 from ..microstructure.grey import full_region
-from ..microstructure.store import ByteLRU
+from ..lru import ByteLRU
 from ..params import Grid, ParameterError, WoodParams
 from ._packing import mask_segments, pack_chunks, read_box
 
