@@ -76,14 +76,14 @@ def trace_in_batches(medium, beam: Beam, optics: Optics, settings: TraceSettings
     """:func:`trace` over consecutive batches of the beam, as Dask tasks on the synchronous
     scheduler so that its progress shows (``progress``: "bar", "lines" or "off"; every ray
     is independent of the others, so the result equals one call's)."""
-    import dask
-
-    from ..progress import LocalLines
-
     n = len(beam.ray_ids)
     size = max(500, math.ceil(n / TRACE_BATCHES))
     if progress == "off" or n < 2 * size:
         return trace(medium, beam, optics, settings)
+    import dask  # only here: its import is a tenth of a second of every short trace
+
+    from ..progress import LocalLines
+
     parts = [dask.delayed(trace, pure=False)(medium, beam[lo:lo + size], optics, settings)
              for lo in range(0, n, size)]
     with LocalLines(title, progress):
