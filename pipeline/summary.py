@@ -128,13 +128,18 @@ class Angles:
         ray indices."""
         return self.draws_of(est, [self.ray_sample(est, picks)])
 
-    def ray_sample(self, est: str, picks: list):
-        """What :meth:`draws_of` needs of the resamples of rays ``picks``: their binned counts (rows, m)
-        for an estimator on a grid, the picks themselves for ``lorentz-mle`` (whose fit needs the angles)."""
-        if self.x.size < 2 or est == LORENTZ_MLE or self._grid(est) is None:
-            return picks
+    def ray_sample(self, est: str, picks: list) -> np.ndarray:
+        """What :meth:`draws_of` needs of the resamples of rays ``picks`` (none of the picks is kept):
+        their binned counts (rows, m) for an estimator on a grid, to be fitted together with the
+        other batches; else the estimates themselves (rows,)."""
+        rows = picks[0].shape[0] if picks else 0
+        if self.x.size < 2:
+            return np.full(rows, np.nan)
+        if est == LORENTZ_MLE:
+            return np.array([self._mle(np.concatenate([p[i[b]] for p, i in zip(self.parts, picks)])) for b in range(rows)])
         grid = self._grid(est)
-        rows = picks[0].shape[0]
+        if grid is None:
+            return np.zeros(rows)
         flat = []
         for p, i in zip(self.parts, picks):
             b = grid.index(p)[i]
@@ -142,16 +147,13 @@ class Angles:
         return np.bincount(np.concatenate(flat), minlength=rows * grid.m).reshape(rows, grid.m).astype(np.float64)
 
     def draws_of(self, est: str, samples: list) -> np.ndarray:
-        """The estimates of consecutive :meth:`ray_sample` results, in order.  On a grid they are
-        fitted together, as one array of counts (each row's fit depends on that row alone; one call
-        instead of one per batch of resamples)."""
-        if self.x.size < 2:
-            return np.full(sum(s[0].shape[0] if s else 0 for s in samples), np.nan)
-        if est == LORENTZ_MLE:
-            return np.array([self._mle(np.concatenate([p[i[b]] for p, i in zip(self.parts, picks)]))
-                             for picks in samples for b in range(picks[0].shape[0] if picks else 0)])
-        if self._grid(est) is None:
-            return np.zeros(sum(s[0].shape[0] if s else 0 for s in samples))
+        """The estimates of consecutive :meth:`ray_sample` results, in order.  The counts of an
+        estimator on a grid are fitted together, as one array (each row's fit depends on that row
+        alone; one call instead of one per batch of resamples)."""
+        if not samples:
+            return np.empty(0)
+        if self.x.size < 2 or est == LORENTZ_MLE or self._grid(est) is None:
+            return np.concatenate(samples)
         return self.of_counts(est, np.concatenate(samples))
 
 
