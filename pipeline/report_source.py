@@ -165,7 +165,7 @@ def sensitivity_markdown(rows: list[dict]) -> list[str]:
 def fresnel_row(base: Path) -> dict | None:
     """The base scene traced with Fresnel reflection beside the same woods and rays without it
     (study 1 at 1 mm): paired changes, or None when the Fresnel dataset is missing."""
-    from .effects import interval, reduce_rays, resample
+    from .effects import interval, reduce_rays, resampled
 
     path = Path(base) / "experiment" / "birch-1mm-fresnel.zarr"
     if not path.exists():
@@ -184,7 +184,7 @@ def fresnel_row(base: Path) -> dict | None:
 
     point, pa, pb = change(every)
     rng = np.random.default_rng(0)
-    draws = np.array([change(resample(rng, n_real, n))[0] for _ in range(2000)])
+    draws = np.array(resampled(rng, n_real, n, 2000, lambda idx: change(idx)[0]))
     lost = [int(np.sum(x[2] != TRANSMITTED)) for x in (a, b)]
     return {"woods": n_real, "rays": n, "without": pa, "with": pb, "change": point, "lost": lost,
             "ci": [interval(point[j], draws[:, j], n_real) for j in range(3)]}

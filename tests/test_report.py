@@ -708,3 +708,27 @@ def test_a_report_section_is_built_alone_from_the_data_it_reads():
     assert "| the measured samples | `make experiment SCALE=paper YES=1` | not recorded |" in lines
     assert "| speed against accuracy | `make tradeoff` | 16.0 min |" in lines
     assert glance(d) == [] and design_section(d) == []
+
+
+def test_a_resample_of_woods_is_reduced_once_and_its_numbers_do_not_depend_on_the_woods_order():
+    """The paired bootstraps reduce each distinct multiset of woods once: that is exact only if the
+    half-max widths and haze of pooled rays do not depend on the order the woods come in."""
+    from pipeline.effects import reduce_rays, resample, resample_key, resampled
+
+    rng = np.random.default_rng(3)
+    n_real, n = 5, 400
+    tr = rng.standard_cauchy((n_real, n)) * rng.uniform(0.5, 3.0, (n_real, 1))
+    tl = rng.standard_normal((n_real, n))
+    ok = rng.random((n_real, n)) < 0.9
+    every = np.arange(n)
+    for _ in range(20):
+        woods = rng.integers(0, n_real, n_real)
+        a = reduce_rays(tr, tl, ok, [(int(r), every) for r in woods])
+        b = reduce_rays(tr, tl, ok, [(int(r), every) for r in rng.permutation(woods)])
+        np.testing.assert_array_equal(a, b)
+    calls = []
+    draws = resampled(np.random.default_rng(9), n_real, n, 500, lambda idx: calls.append(idx) or len(calls))
+    keys = [resample_key(resample(g, n_real, n), n_real) for g in [np.random.default_rng(9)] for _ in range(500)]
+    assert len(calls) == len(set(keys)) < 500  # each multiset of woods reduced once
+    assert [draws[i] == draws[keys.index(k)] for i, k in enumerate(keys)] == [True] * 500
+    assert resample_key(resample(rng, 1, n), 1) is None  # one wood: its rays are redrawn, nothing is reused
