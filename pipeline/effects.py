@@ -73,13 +73,14 @@ def resample_key(idx: list, n_real: int, estimator: str = HALF_MAX):
     return None
 
 
-def resampled(rng: np.random.Generator, n_real: int, n_rays: int, n_boot: int, reduce) -> list:
+def resampled(rng: np.random.Generator, n_real: int, n_rays: int, n_boot: int, reduce,
+              estimator: str = HALF_MAX) -> list:
     """``reduce(idx)`` of ``n_boot`` draws of :func:`resample`, in order; a resample drawn again
-    (the same :func:`resample_key`) is reduced once."""
+    (the same :func:`resample_key` for the ``estimator`` ``reduce`` uses) is reduced once."""
     seen, out = {}, []
     for _ in range(n_boot):
         idx = resample(rng, n_real, n_rays)
-        key = resample_key(idx, n_real)
+        key = resample_key(idx, n_real, estimator)
         if key is None or key not in seen:
             seen[key] = reduce(idx)
         out.append(seen[key])
@@ -164,9 +165,10 @@ def effects(name: str, ds, *, n_boot: int = N_BOOT, seed: int = 0) -> list[Effec
     """Each value of a study against its reference value: the change of FWHM_R and FWHM_L
     (% of the reference) and of haze (points), with paired 95 % intervals from a bootstrap
     that draws wood realisations with replacement, each with all its rays (one wood: its rays
-    with replacement), and reduces every value on that draw.  Every value is traced on the same realisations (seeds)
-    with the same beam (ray i enters at the same point), so the draw pairs them, and the
-    interval holds the wood-to-wood variation of the difference as well as the ray sampling."""
+    with replacement), and reduces every value on that draw.  Every value is traced on the same
+    realisations (seeds) with the same beam (ray i enters at the same point), so the draw pairs
+    them, and the interval holds the wood-to-wood variation of the difference as well as the
+    ray sampling."""
     codes = dict(zip(ds["status"].attrs.get("flag_values", []), ds["status"].attrs.get("flag_meanings", "").split()))
     if codes.get(TRANSMITTED) != "transmitted":
         raise ValueError(f"{name}: status code {TRANSMITTED} is not 'transmitted' in this Dataset ({codes})")
