@@ -11,6 +11,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent / "pipeline"
 # Floors, bottom first: a module imports only its own floor and those below.
 FLOORS = [
     {"pipeline", "pipeline.versions", "pipeline.params", "pipeline.rng", "pipeline._intrinsics", "pipeline._kernel_cache",
+     "pipeline._numba_inline",
      "pipeline._cauchy", "pipeline.lru",
      "pipeline.cache", "pipeline.progress", "pipeline.analysis", "pipeline.summary", "pipeline.geometry_stats",
      "pipeline.provenance", "pipeline.publish", "pipeline.runlog"},
