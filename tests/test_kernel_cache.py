@@ -73,9 +73,6 @@ for name in ("birch", "balsa"):
         trace(wood_medium(p, seed=3, thickness_um=20.0, voxel_um=0.5, settings=s), square_beam(4, 10.0, seed=2),
               Optics(1.53, 1.52), s)
     generate_block(p, make_grid((20.0, 20.0, 20.0), 0.5, (0.0, 0.0, 0.0), p), (0, 0, 0), (8, 8, 8), seed=5)
-from pipeline.optics.ahead import PARTS, compile_part
-for part in PARTS:
-    compile_part(part, build_params("birch"), 3)
 lat = reference("tubes-hex", pitch_um=14.5, wall_um=2.0, jitter=0.1).lattice(1)
 trace(lat.slab(20.0), square_beam(4, 10.0, seed=1), Optics(1.52, 1.49), settings_for("exact"))
 print(os.environ["NUMBA_CACHE_DIR"])
@@ -89,29 +86,7 @@ PACKAGE_ONLY = {
     "surface.evaluate": 1, "_surface_cells._polygon": 1, "_slice.vessel_walls": 1, "_slice._eval_bucket": 1,
     "_ray_cells.ray_slice_tables": 1, "_distortion.distortion_tile": 1,
     "_surface_march.march": 2, "_surface_march._lattice_bracket": 2, "_surface_march._before_root": 2,
-    # compiled ahead of the march (pipeline/optics/ahead.py) for the march's own argument types
-    "surface_gradient.gradient": 1, "ahead._normal": 1,
 }
-
-
-def test_a_study_compiles_the_exact_tracer_in_halves_on_two_workers():
-    # Each half on its own worker: one process holds the wood's evaluation, the other the gradient
-    # (cached kernels are loaded, which is what each worker's first trace would do anyway).
-    from distributed import Client, LocalCluster
-
-    from pipeline.optics.ahead import PARTS, compile_on_workers
-    from pipeline.params import build_params
-
-    def loaded():
-        from pipeline.microstructure.region import _phases
-        from pipeline.optics.ahead import _normal
-        return len(_phases.signatures), len(_normal.signatures)
-
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
-        seconds = compile_on_workers(client, build_params("birch"), 3)
-        assert len(seconds) == len(PARTS) and all(t >= 0.0 for t in seconds)
-        assert sorted(client.run(loaded).values()) == [(0, 1), (1, 0)]
 
 
 def test_each_kernel_compiles_for_one_signature():

@@ -129,25 +129,9 @@ def compute(plans: list[Plan], client, *, progress: str = "off") -> dict:
     from ..progress import graph_keys
     from ..runlog import gather_graph
 
-    first = _first_exact_wood(plans)
-    if first is not None:  # the exact tracer's kernels compiled in halves side by side (cached: loaded)
-        from ..optics.ahead import compile_on_workers
-
-        compile_on_workers(client, first.wood, first.seed)
     futures = client.compute(graph.micro + graph.summaries)
     results = gather_graph(client, futures, graph_keys(graph.micro + graph.summaries), "twray study", progress,
                            graph.labels, graph.weights)
     n = len(graph.micro)
     report["chunks_generated"] = int(sum(results[:n]) + sum(r["chunks_generated"] for r in results[n:]))
     return report
-
-
-def _first_exact_wood(plans: list[Plan]):
-    """The first scene of ``plans`` with a shard to trace by `exact` through generated wood, or None."""
-    for plan in plans:
-        for shard in plan.shards:
-            if not shard.cached:
-                scene = plan.study.realisation(shard.scene_index, shard.realisation)
-                if scene.wood is not None and scene.settings.medium_kind == "surfaces":
-                    return scene
-    return None
