@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
 import logging
 import math
 import os
 import shutil
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +36,11 @@ CONFIRM_DEFAULT_H = 2.0
 # Measured by benchmarks/bench_estimates.py (results/estimates.md) on 2-core machines; tests/test_limits.py
 # holds a few cases within 1.5x of what the commands use.
 STARTUP_CPU_S = 1.6  # a process importing twray and loading its compiled kernels (the command, each worker)
+# A process compiling the kernels of a medium kind on first use, once for each checkout and version of the
+# sources (a first `twray trace` of 0.1 mm into an empty kernel cache: exact 100-124 s, accurate 83 s,
+# less 3-4 s warm); FIRST_KERNEL: the kernel whose cached index says they are compiled.
+COMPILE_CPU_S = {"surfaces": 110.0, "voxels": 80.0}
+FIRST_KERNEL = {"surfaces": ("optics._surface_march", "march"), "voxels": ("optics._voxel_march", "march_voxels")}
 IMPORT_CPU_S = 1.0  # a command that reads or writes volumes only (export-tiff, a lazy generate)
 BASE_MEMORY = 260e6  # a process with twray's libraries and kernels loaded (220-320 MB measured)
 # Voxels generated per CPU-second into a store, its compression and pyramid included: fibre ellipses (birch
@@ -221,6 +228,31 @@ def summary_estimate(rays: int) -> Estimate:
     """Reducing ``rays`` traced rays of one wood to every estimator's widths and haze with their
     intervals (a trace's summary)."""
     return Estimate(pool_cpu_s(1, rays), 0.0, 0.0)
+
+
+def compiling(kinds, processes: int) -> Estimate:
+    """Compiling the kernels of the media ``kinds`` ("surfaces", "voxels") that this checkout has not
+    compiled yet on this machine, in each of ``processes`` processes (each compiles them at first
+    use; docs/performance.md#compiling-the-kernels)."""
+    cpu = sum((COMPILE_CPU_S[k] for k in set(kinds) if k in COMPILE_CPU_S and not compiled(*FIRST_KERNEL[k])), 0.0)
+    return Estimate(cpu * processes, 0.0, 0.0)
+
+
+def compiled(module: str, kernel: str, environ=os.environ) -> bool:
+    """Whether the kernel cache in use holds ``kernel`` of ``module`` (a module of this package, as
+    "optics._surface_march") compiled from this checkout: Numba's index file of it, in the folder
+    Numba keeps for that module's folder (``<folder name>_<sha1 of its path>``).  True where Numba
+    caches beside the sources (no NUMBA_CACHE_DIR): not looked for."""
+    from ._kernel_cache import PACKAGE
+
+    root = environ.get("NUMBA_CACHE_DIR")
+    if not root:
+        return True
+    path = os.path.abspath(PACKAGE.joinpath(*module.split(".")).with_suffix(".py"))
+    folder = os.path.dirname(path)
+    sub = Path(root) / f"{os.path.basename(folder)}_{hashlib.sha1(folder.encode()).hexdigest()}"
+    version = f"py{sys.version_info[0]}{sys.version_info[1]}"
+    return any(sub.glob(f"{Path(path).stem}.{kernel}-*.{version}.nbi"))
 
 
 def startup(processes: int, *, kernels: bool = True) -> Estimate:

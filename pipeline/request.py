@@ -19,3 +19,4 @@ class GraphRequest:
     yes: bool = False
     progress: str = "off"
     started: Estimate = field(default_factory=Estimate)  # the command and the workers it starts
+    workers: int = 0  # the local workers it starts (0: a running scheduler's, unknown here)

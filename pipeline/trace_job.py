@@ -123,7 +123,8 @@ def run(job: TraceJob, *, out: Path | None = None, yes: bool = False, progress: 
     the RayResult [µm] and its summary."""
     medium, centre, est = medium_of(job)
     rays = job.rays if job.target is None else job.target.max_rays
-    limits.check(limits.startup(1) + est, what=f"`trace` of {rays} rays", yes=yes,
+    limits.check(limits.startup(1) + limits.compiling({job.settings.medium_kind}, 1) + est,
+                 what=f"`trace` of {rays} rays", yes=yes,
                  fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
                      "or a thinner sample")
     result, summary = trace_medium(job, medium, centre, progress=progress)

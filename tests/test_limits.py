@@ -359,3 +359,27 @@ def test_a_pools_distinct_resamples_of_woods_are_as_many_as_the_multinomial_draw
         assert abs(limits.distinct_resamples(woods) - mean) <= 3.0 * math.sqrt(var) + 0.5, woods
     assert limits.distinct_resamples(40) == 2000  # 40 woods: every resample differs
     assert limits.pool_cpu_s(5, 5000) < limits.pool_cpu_s(40, 5000) / 5
+
+
+def test_a_first_run_of_these_sources_counts_compiling_the_kernels_and_says_so(tmp_path, monkeypatch, capsys):
+    # A machine that has not compiled this checkout's kernels: each process compiles them at first
+    # use, which the estimate counts and a study says (a dry run: nothing is compiled here).
+    import subprocess
+
+    from pipeline.cli import main
+
+    kernels = tmp_path / "kernels"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(kernels))
+    assert not limits.compiled(*limits.FIRST_KERNEL["surfaces"])
+    assert limits.compiling({"surfaces", "voxels", "fields"}, 2).cpu_s == pytest.approx(
+        2 * (limits.COMPILE_CPU_S["surfaces"] + limits.COMPILE_CPU_S["voxels"]))
+    study = Path(__file__).resolve().parent.parent / "studies" / "table1" / "study-1.yaml"
+    assert main(["study", str(study), "--scale", "small", "--workers", "2", "--dry-run", "--cache",
+                 str(tmp_path / "c"), "--results", str(tmp_path / "r")]) == 0
+    err = capsys.readouterr().err
+    assert "each of the 2 workers compiles the tracer's kernels before its first trace (4 CPU-min in all, once)" in err
+    # A kernel of this checkout that a fresh process compiles into that cache is found there.
+    assert not limits.compiled("rng", "uniform_table")
+    subprocess.run([sys.executable, "-c", "from pipeline.optics.rays import square_beam; square_beam(3, 5.0, seed=1)"],
+                   check=True)
+    assert limits.compiled("rng", "uniform_table") and not limits.compiled("rng", "no_such_kernel")

@@ -58,6 +58,8 @@ def render(request: CameraRequest, *, open_client, log) -> CameraOutcome:
     blocks = {e.key: plan_blocks(e, request.cache, request.rows_per_task) for e in todo}  # an interrupted run's are kept
     left = [sum(b.hi - b.lo for b in blocks[e.key] if not b.cached) for e in todo]
     est = request.started + limits.camera_estimate([e.config for e in todo], rows=left)
+    if todo:  # the workers' first rows compile the kernels where this checkout has not yet on this machine
+        est = est + limits.compiling({e.config.settings.medium_kind for e in todo}, request.workers)
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
         log(f"twray camera: estimate for the {len(todo)} image{'' if len(todo) == 1 else 's'} to render "
             f"(the part of the sheet its rays reach): {est.text()}")

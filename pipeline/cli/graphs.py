@@ -77,14 +77,18 @@ def _cluster(args, command: str):
                    scheduler_file=args.scheduler_file)
 
 
-def _started(args, command: str) -> "limits.Estimate":
-    """The command and the local workers it starts (none with a running scheduler)."""
+def _workers(args, command: str) -> int:
+    """The local workers the command starts (none with a running scheduler)."""
     from ..cluster import local_workers
 
     if args.scheduler or args.scheduler_file:
-        return limits.startup(1)
-    return limits.startup(1 + local_workers(command, None if args.workers is None else
-                                            integer(args.workers, "workers", 1)))
+        return 0
+    return local_workers(command, None if args.workers is None else integer(args.workers, "workers", 1))
+
+
+def _started(args, command: str) -> "limits.Estimate":
+    """The command and the local workers it starts."""
+    return limits.startup(1 + _workers(args, command))
 
 
 def cmd_study(args) -> int:
@@ -103,7 +107,7 @@ def cmd_study(args) -> int:
         realisations=None if args.realisations is None else integer(args.realisations, "realisations", 1),
         method=args.method, rays=None if args.rays is None else integer(args.rays, "rays", 1),
         dry_run=args.dry_run, yes=args.yes, report=report, progress=progress_mode(args.quiet),
-        started=_started(args, "study"))
+        started=_started(args, "study"), workers=_workers(args, "study"))
     outcome = run(request, open_client=lambda: _cluster(args, "study"))
     print("\n".join(describe(outcome)))
     return 0
@@ -136,7 +140,8 @@ def cmd_camera(args) -> int:
     memory_limit(args.memory_limit)
     request = CameraRequest(file=args.file, cache=args.cache, results=args.results, scale=args.scale,
                             method=args.method, rows_per_task=rows, dry_run=args.dry_run, yes=args.yes,
-                            progress=progress_mode(args.quiet), started=_started(args, "camera"))
+                            progress=progress_mode(args.quiet), started=_started(args, "camera"),
+                            workers=_workers(args, "camera"))
     outcome = render(request, open_client=lambda: _cluster(args, "camera"),
                      log=lambda line: print(line, file=sys.stderr))
     print("\n".join(describe(outcome, args.results)))

@@ -70,7 +70,9 @@ def run(request: StudyRequest, *, open_client, log=say) -> StudyOutcome:
     # What could never fit is refused before planning (which lists the wood's chunks).
     # A target over woods may trace up to its cap of woods (over rays, study_estimate takes its cap of rays).
     scenes = [sc for st in studies for sc in at_target_cap(st).all_scenes()]
-    est = request.started + limits.study_estimate(scenes, shard_rays=request.shard_rays)
+    # The workers' first traces compile the kernels where this checkout has not yet on this machine.
+    compiling = limits.compiling({sc.settings.medium_kind for sc in scenes}, request.workers)
+    est = request.started + compiling + limits.study_estimate(scenes, shard_rays=request.shard_rays)
     limits.check(est, what="`study`", yes=True, disk_path=request.cache, fit=FIT)
     t0 = time.perf_counter()
     plans = [plan_study(s, request.cache, shard_rays=request.shard_rays) for s in studies]
@@ -78,6 +80,11 @@ def run(request: StudyRequest, *, open_client, log=say) -> StudyOutcome:
             for plan in plans for summ in plan.summaries if not summ.cached]
     more = [sc for st in studies for sc in at_target_cap(st).all_scenes() if sc.realisation >= st.realisations]
     est = request.started + limits.study_estimate(todo + more, shard_rays=request.shard_rays)
+    if todo or more:
+        est = est + compiling
+    if est.cpu_s >= limits.SHOW_ESTIMATE_S and (todo or more) and compiling.cpu_s > 0:
+        log(f"twray study: first run of these sources here: each of the {request.workers} workers compiles "
+            f"the tracer's kernels before its first trace ({limits.hours(compiling.cpu_s)} in all, once)")
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
         upto = f" (up to {len(more)} more at the targets' caps of woods)" if more else ""
         log(f"twray study: estimate for the {len(todo)} value{'' if len(todo) == 1 else 's'} to compute{upto}: "
