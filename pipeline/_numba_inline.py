@@ -108,8 +108,8 @@ def restore() -> None:
 
 
 class _OnImport:
-    """A finder on ``sys.meta_path``: finds Numba's inliner module as the path finder would, and applies the patch once that
-    module has run."""
+    """A finder on ``sys.meta_path``: finds Numba's inliner module as the path finder would, and
+    applies the patch once that module has run (any other module: left to the other finders)."""
 
     def find_spec(self, name, path, target=None):
         if name != MODULE:

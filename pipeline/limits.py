@@ -24,6 +24,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from ._kernel_cache import PACKAGE
 from .optics.settings import METHODS
 from .params import ParameterError
 
@@ -243,8 +244,6 @@ def compiled(module: str, kernel: str, environ=os.environ) -> bool:
     "optics._surface_march") compiled from this checkout: Numba's index file of it, in the folder
     Numba keeps for that module's folder (``<folder name>_<sha1 of its path>``).  True where Numba
     caches beside the sources (no NUMBA_CACHE_DIR): not looked for."""
-    from ._kernel_cache import PACKAGE
-
     root = environ.get("NUMBA_CACHE_DIR")
     if not root:
         return True
