@@ -239,6 +239,16 @@ def compiling(kinds, processes: int) -> Estimate:
     return Estimate(cpu * processes, 0.0, 0.0)
 
 
+def first_run_line(command: str, est: Estimate, workers: int = 0) -> str | None:
+    """The line a command prints where ``est`` (:func:`compiling`) is not nothing: it compiles the
+    tracer's kernels first (in ``workers`` workers; 0: in itself)."""
+    if not est.cpu_s > 0:
+        return None
+    who = f"each of the {workers} workers compiles" if workers else "it compiles"
+    return (f"twray {command}: first run of these sources here: {who} the tracer's kernels before its first "
+            f"trace ({hours(est.cpu_s)} in all, once)")
+
+
 def compiled(module: str, kernel: str, environ=os.environ) -> bool:
     """Whether the kernel cache in use holds ``kernel`` of ``module`` (a module of this package, as
     "optics._surface_march") compiled from this checkout: Numba's index file of it, in the folder

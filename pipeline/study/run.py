@@ -82,9 +82,9 @@ def run(request: StudyRequest, *, open_client, log=say) -> StudyOutcome:
     est = request.started + limits.study_estimate(todo + more, shard_rays=request.shard_rays)
     if todo or more:
         est = est + compiling
-    if est.cpu_s >= limits.SHOW_ESTIMATE_S and (todo or more) and compiling.cpu_s > 0:
-        log(f"twray study: first run of these sources here: each of the {request.workers} workers compiles "
-            f"the tracer's kernels before its first trace ({limits.hours(compiling.cpu_s)} in all, once)")
+        first = limits.first_run_line("study", compiling, request.workers)
+        if first:
+            log(first)
     if est.cpu_s >= limits.SHOW_ESTIMATE_S:
         upto = f" (up to {len(more)} more at the targets' caps of woods)" if more else ""
         log(f"twray study: estimate for the {len(todo)} value{'' if len(todo) == 1 else 's'} to compute{upto}: "
