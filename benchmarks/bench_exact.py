@@ -17,6 +17,10 @@ Writes the "exact" section of results/bench.json:
   how many exit directions agree to 1e-9 rad.
 - per_interface_1mm: µs per interface of `exact` on 1 mm of birch (300 rays, ΔRI 0.01), warm, one
   core, the measure of the goal table in results/BENCH.md;
+- first_compile: `twray trace --preset birch --thickness-mm 0.1 --rays 20` with `exact` and with
+  `accurate` into an empty kernel cache (a first run of a checkout's sources on a machine: it
+  compiles the kernels), then the same again (kernels loaded): wall and CPU seconds of each, the
+  measure behind `limits.COMPILE_CPU_S`;
 - whole_process: `twray trace --preset birch --thickness-mm 1 --rays 200` as whole processes with
   `exact` and with `accurate` (kernels compiled by a first run of each, the second timed);
 - normals: µs per normal at the primitives listed at random points of 0.25 mm of birch and of
@@ -232,6 +236,30 @@ def whole_process(_: str) -> dict:
     return out
 
 
+@_part("first_compile")
+def first_compile(_: str) -> dict:
+    import os
+    import shutil
+    import tempfile
+    twray = shutil.which("twray") or str(Path(sys.executable).with_name("twray"))
+    out = {"command": "twray trace --preset birch --thickness-mm 0.1 --delta-ri 0.01 --rays 20 --quiet"}
+    with tempfile.TemporaryDirectory() as tmp:
+        for method in ("exact", "accurate"):
+            env = {**os.environ, "NUMBA_CACHE_DIR": str(Path(tmp) / method)}
+            for run in ("cold", "warm"):
+                before = resource.getrusage(resource.RUSAGE_CHILDREN)
+                t0 = time.perf_counter()
+                subprocess.run([twray, "trace", "--preset", "birch", "--thickness-mm", "0.1", "--delta-ri", "0.01",
+                                "--rays", "20", "--quiet", "--method", method], check=True, capture_output=True,
+                               cwd=tmp, env=env)
+                after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+                out[f"{method}_{run}_s"] = round(time.perf_counter() - t0, 1)
+                out[f"{method}_{run}_cpu_s"] = round(cpu, 1)
+            out[f"{method}_compile_cpu_s"] = round(out[f"{method}_cold_cpu_s"] - out[f"{method}_warm_cpu_s"], 1)
+    return out
+
+
 @_part("normals")
 def normals(_: str) -> dict:
     from numba import njit
@@ -325,7 +353,7 @@ def main():
              "lazy_1_5mm_accurate": lambda: fresh("lazy_1_5mm_voxels", "accurate"),
              "refinement": lambda: fresh("refinement"), "lattices": lambda: fresh("lattices"),
              "normals": lambda: fresh("normals"), "per_interface_1mm": lambda: fresh("per_interface_1mm"),
-             "whole_process": lambda: fresh("whole_process")}
+             "whole_process": lambda: fresh("whole_process"), "first_compile": lambda: fresh("first_compile")}
     only = args.only.split(",") if args.only else list(parts)
     unknown = sorted(set(only) - set(parts))
     if unknown:

@@ -189,6 +189,14 @@ def render(doc: dict, scans: list | None = None) -> str:
             for wood, r in nrm.items():
                 md.append(f"| {wood} | {r['normals']:,} | {r['analytic_us']:.2f} | {r['differences_us']:.2f} | "
                           f"{r['speedup']:.1f}× | {r['angle_rad_p99']:.1e} / {r['angle_rad_max']:.1e} |")
+        fc = e.get("first_compile")
+        if fc:
+            md += ["", f"A first run of a checkout's sources on a machine compiles its kernels (`{fc['command']}` into "
+                   f"an empty kernel cache, then again with them compiled; one process): `exact` "
+                   f"{fc['exact_cold_s']:.0f} s ({fc['exact_cold_cpu_s']:.0f} CPU-s) against {fc['exact_warm_s']:.1f} s, "
+                   f"`accurate` {fc['accurate_cold_s']:.0f} s ({fc['accurate_cold_cpu_s']:.0f} CPU-s) against "
+                   f"{fc['accurate_warm_s']:.1f} s: {fc['exact_compile_cpu_s']:.0f} and {fc['accurate_compile_cpu_s']:.0f} "
+                   "CPU-s of compiling (what the estimates add on a first run, `limits.COMPILE_CPU_S`)."]
     else:
         md.append("Not run (`make bench-exact`).")
     k = doc.get("study_census")

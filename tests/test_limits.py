@@ -383,7 +383,7 @@ def test_a_first_run_of_these_sources_counts_compiling_the_kernels_and_says_so(t
     assert main(["trace", "--preset", "birch", "--thickness-mm", "0.1", "--delta-ri", "0.01", "--rays", "20"]) == 2
     err = capsys.readouterr().err
     assert "twray trace: first run of these sources here: it compiles the tracer's kernels before its first trace " \
-           "(110 CPU-s in all, once)" in err and "add --yes" in err
+           "(2 CPU-min in all, once)" in err and "add --yes" in err
     # A kernel of this checkout that a fresh process compiles into that cache is found there.
     assert not limits.compiled("rng", "uniform_table")
     subprocess.run([sys.executable, "-c", "from pipeline.optics.rays import square_beam; square_beam(3, 5.0, seed=1)"],
