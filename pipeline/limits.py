@@ -250,12 +250,12 @@ def first_run_line(command: str, est: Estimate, workers: int = 0) -> str | None:
             f"trace ({hours(est.cpu_s)} in all, once)")
 
 
-def compiled(module: str, kernel: str, environ=os.environ) -> bool:
+def compiled(module: str, kernel: str) -> bool:
     """Whether the kernel cache in use holds ``kernel`` of ``module`` (a module of this package, as
     "optics._surface_march") compiled from this checkout: Numba's index file of it, in the folder
     Numba keeps for that module's folder (``<folder name>_<sha1 of its path>``).  True where Numba
     caches beside the sources (no NUMBA_CACHE_DIR): not looked for."""
-    root = environ.get("NUMBA_CACHE_DIR")
+    root = os.environ.get("NUMBA_CACHE_DIR")
     if not root:
         return True
     path = os.path.abspath(PACKAGE.joinpath(*module.split(".")).with_suffix(".py"))

@@ -117,14 +117,17 @@ def medium_of(job: TraceJob):
         + limits.summary_estimate(rays)
 
 
-def run(job: TraceJob, *, out: Path | None = None, yes: bool = False, progress: str = "off") -> tuple:
+def run(job: TraceJob, *, out: Path | None = None, yes: bool = False, progress: str = "off", log=None) -> tuple:
     """``twray trace``'s one library call: check ``job`` and what it would cost (refused unless
     ``yes`` past the confirmation threshold), trace it, and publish its rays to ``out`` (when given);
-    the RayResult [µm] and its summary."""
+    the RayResult [µm] and its summary.  ``log``: given a line where it compiles its kernels first."""
     medium, centre, est = medium_of(job)
     rays = job.rays if job.target is None else job.target.max_rays
-    limits.check(limits.startup(1) + limits.compiling({job.settings.medium_kind}, 1) + est,
-                 what=f"`trace` of {rays} rays", yes=yes,
+    compiling = limits.compiling({job.settings.medium_kind}, 1)
+    first = limits.first_run_line("trace", compiling)
+    if first and log is not None:
+        log(first)
+    limits.check(limits.startup(1) + compiling + est, what=f"`trace` of {rays} rays", yes=yes,
                  fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
                      "or a thinner sample")
     result, summary = trace_medium(job, medium, centre, progress=progress)

@@ -72,18 +72,15 @@ def add_trace(sub):
 
 
 def cmd_trace(args) -> int:
-    from .. import limits
     from ..trace_job import check_rays_out, run, strict_json
 
     if args.out is not None:
         args.out = str(out_path(args.out))
         check_rays_out(Path(args.out))
     job = _trace_job(args)
-    first = limits.first_run_line("trace", limits.compiling({job.settings.medium_kind}, 1))
-    if first and not args.quiet:
-        print(first, file=sys.stderr)
     _, summary = run(job, out=None if args.out is None else Path(args.out), yes=args.yes,
-                     progress=progress_mode(args.quiet))
+                     progress=progress_mode(args.quiet),
+                     log=None if args.quiet else lambda line: print(line, file=sys.stderr))
     if args.json:
         print(strict_json(summary))
         return 0
