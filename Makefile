@@ -4,6 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
+# make test runs the test files on this many processes, each file whole on one (0: in one process).
+TEST_WORKERS ?= 2
 # quick: the paper's samples, at most 5 woods, a twentieth of the rays (minutes); paper: the committed
 # results (SCALE=paper YES=1; Table 1 on as many woods as its target asks for, at most 40: about 40 min on 2 cores);
 # small: a tenth of the thickness (tests).
@@ -97,7 +99,7 @@ demo: install
 	@echo "wrote results/demo/birch.zarr and results/demo/slices/*.png"
 
 test: install
-	$(BIN)/python -m pytest $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 bench: bench-generate bench-trace bench-exact bench-study bench-census bench-camera bench-accuracy bench-iso bench-estimates bench-wave
 	$(BIN)/python benchmarks/bench_md.py --bench results/bench.json --out results/BENCH.md
