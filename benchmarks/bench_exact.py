@@ -211,8 +211,19 @@ def per_interface_1mm(_: str) -> dict:
         dt = time.perf_counter() - t0
         best = dt if best is None else min(best, dt)
     ev = int(r.events.sum())
+    # The last trace's steps by what bounded each (the same rays each time, so one trace's counts).
     return {"rays": 300, "thickness_mm": 1.0, "delta_ri": 0.01, "interfaces": ev,
-            "us_per_interface": round(1e6 * best / ev, 2)}
+            "us_per_interface": round(1e6 * best / ev, 2),
+            "evaluations_per_interface": round(sum(m.evaluations.values()) / ev, 3),
+            "steps_by_bound_per_interface": _bounds(m.steps, ev)}
+
+
+def _bounds(steps: dict, interfaces: int) -> dict:
+    """Steps an interface by what bounded them; A's own clearance for a reason the march does not
+    count (no secant yet, mostly: A's first step or a new segment) is what the others leave."""
+    out = {k: v / interfaces for k, v in steps.items()}
+    out["own_no_secant"] = out["own"] - out["own_free"] - out["own_past_others"] - out["own_again"]
+    return {k: round(v, 3) for k, v in out.items()}
 
 
 def _twray_trace(args: list, cwd, env=None) -> tuple:

@@ -149,6 +149,13 @@ def render(doc: dict, scans: list | None = None) -> str:
                    f"regions; {w['evaluations_per_interface']:.1f} point evaluations an interface, "
                    f"{w['ns_per_evaluation']:.0f} ns each, by purpose: " + _purposes(w["evaluations_by_purpose_per_interface"])
                    + " (docs/performance.md)."]
+        b = _get(e, "per_interface_1mm", "steps_by_bound_per_interface")
+        if b:
+            md += ["", "What bounded each step of `exact`'s march (part `per_interface_1mm`: 300 rays through 1 mm of "
+                   f"birch at ΔRI 0.01, {e['per_interface_1mm']['evaluations_per_interface']:.1f} evaluations an "
+                   "interface; docs/performance.md, \"What bounds the steps\"):", "",
+                   "| what bounded the step | steps an interface |", "|---|---|"]
+            md += [f"| {words} | {b[k]:.2f} |" for k, words in _BOUND_WORDS.items() if k in b]
         z = e["lazy_1_5mm"]
         md += ["", f"1000 rays through 1.5 mm of birch with `exact`, cold, {z['threads']} threads: "
                f"{z['seconds']:.2f} s ({z['cpu_seconds']:.1f} CPU-s), of which {z['seconds_first_region']:.2f} s "
@@ -264,6 +271,16 @@ def render(doc: dict, scans: list | None = None) -> str:
 _PURPOSE_WORDS = {"step": "a step's end", "root": "regula falsi on a crossing", "normal": "the normal",
                   "lattice_guess": "the lattice points guessed", "lattice_bisection": "the lattice bisection",
                   "regime_root": "cutting a regime step short", "start": "a segment's start"}
+
+
+_BOUND_WORDS = {"own": "A's own clearance (A approached from outside)",
+                "own_free": "… the primitive crossed last was free to switch", "own_past_others":
+                "… the secant's root lay past the others' clearance", "own_no_secant": "… no secant yet (or another reason)",
+                "own_again": "… a long step from here had failed", "others": "the others' clearance",
+                "others_reach": "… the reach row's", "secant": "a secant step past A's root",
+                "away": "a longer step away from A", "regime": "a long step across a regime surface",
+                "inside": "inside A, as far as the others allow", "probe": "the 2·hit probe",
+                "again": "(long steps that failed their check and were taken again)"}
 
 
 def _purposes(per_interface: dict) -> str:

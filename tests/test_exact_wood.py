@@ -352,7 +352,7 @@ def test_generated_wood_with_exact_reads_no_voxels():
     assert not set(res.extras) & set(VOXEL_COUNTS)  # the voxel backend's counts are its own
 
 
-def test_the_evaluations_by_purpose_add_up_to_the_rays_own_counts():
+def test_the_evaluations_by_purpose_and_the_steps_by_bound_add_up_to_the_rays_own_counts():
     # A margin wide enough that no ray leaves its region: no evaluation is done twice, so the
     # march's counts by purpose sum to the per-ray counts; each interface takes one normal, the
     # analytic gradient of its primitive (two where the primitive's surface ends at the crossing's
@@ -364,9 +364,17 @@ def test_the_evaluations_by_purpose_add_up_to_the_rays_own_counts():
     assert sum(counts.values()) == res.extras["evaluations"].sum()
     assert counts["start"] == 40 and counts["step"] > res.events.sum()
     assert res.events.sum() <= counts["normal"] <= 2 * (res.events.sum() + res.extras["passes"].sum())
+    # Each step's length was set by one bound and its end evaluated once; a step's start is evaluated
+    # again only after a surface the march passed without a phase change.
+    bounds = dict(medium.steps)
+    top = sum(bounds[k] for k in ("own", "others", "secant", "away", "regime", "inside", "probe"))
+    assert top <= counts["step"] <= top + res.extras["passes"].sum()
+    assert bounds["own_free"] + bounds["own_past_others"] + bounds["own_again"] <= bounds["own"]
+    assert 0 < bounds["others_reach"] <= bounds["others"] and bounds["again"] < top
     again = trace(medium, square_beam(40, 50.0, seed=4), Optics(1.53, 1.52), EXACT)
     assert np.array_equal(again.direction, res.direction)
     assert medium.evaluations == {k: 2 * v for k, v in counts.items()}  # they add up over traces
+    assert medium.steps == {k: 2 * v for k, v in bounds.items()}
 
 
 def test_memos_kept_between_traces_change_no_ray():

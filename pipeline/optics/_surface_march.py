@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit
 
 from .._intrinsics import borrowed, carve
-from ..microstructure.surface import MAX_PRIMS, N_COLS
+from ..microstructure.surface import MAX_PRIMS, N_COLS, P_REACH
 from ._surface_march_rows import copy_rows, far_unproven, find_row, nearest, regime, same_key, switched
 from ._surface_points import surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
@@ -42,14 +42,23 @@ ROWS = MAX_PRIMS * N_COLS
 # a segment's first point, a step's end, cutting a regime step short, regula falsi on a crossing,
 # the lattice point guessed from its root, the lattice bisection where the guess failed, the normal.
 PURPOSES = ("start", "step", "regime_root", "root", "lattice_guess", "lattice_bisection", "normal")
+# What set each step's length, counted after the purposes (docs/performance.md, "What bounds the
+# steps"): A's own clearance and why no longer step was taken, the others' (the reach row's among
+# them), the longer steps, the probe, and long steps that failed their check and were taken again.
+STEP_BOUNDS = ("own", "own_free", "own_past_others", "own_again", "others", "others_reach", "secant", "away",
+               "regime", "inside", "probe", "again")
+B_OWN, B_FREE, B_PAST, B_AGAIN_OWN, B_OTHERS, B_REACH, B_SECANT, B_AWAY, B_REGIME, B_INSIDE, B_PROBE, B_AGAIN = \
+    range(len(STEP_BOUNDS))
 COUNTS = 3 * ROWS + 6 * 3 + 5 * 5  # after three row tables, six vectors and five keys: the counts
-WORK = COUNTS + len(PURPOSES)
+BOUNDS = COUNTS + len(PURPOSES)
+WORK = BOUNDS + len(STEP_BOUNDS)
 
 
 def new_work() -> np.ndarray:
     """The march's work arrays, one buffer per thread; the caller owns it while the march runs.
-    Its evaluations by purpose (:data:`PURPOSES`, from :data:`COUNTS` on) start at zero and add up
-    over the marches it serves."""
+    Its evaluations by purpose (:data:`PURPOSES`, from :data:`COUNTS` on) and its steps by what
+    bounded them (:data:`STEP_BOUNDS`, from :data:`BOUNDS` on) start at zero and add up over the
+    marches it serves."""
     work = np.empty(WORK)
     work[COUNTS:] = 0.0
     return work
@@ -200,6 +209,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     ctx = borrowed(ctx)
     cache = borrowed(cache)
     cnt = carve(work, COUNTS, (len(PURPOSES),))
+    bnd = carve(work, BOUNDS, (len(STEP_BOUNDS),))
     P = carve(work, 0, (MAX_PRIMS, N_COLS))
     Pa = carve(work, ROWS, (MAX_PRIMS, N_COLS))
     Pb = carve(work, 2 * ROWS, (MAX_PRIMS, N_COLS))
@@ -272,7 +282,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     st = NEEDS_REGION
                     break
             have = False
-            a, other = nearest(P, n, skip, key)
+            a, other, o = nearest(P, n, skip, key)
             # The primitive crossed last is free to switch once more only from inside its
             # negative set (a line that left a convex set does not come back to it).
             skip_free = force_free
@@ -282,6 +292,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 skip_free = i >= 0 and P[i, 5] < 0.0
             g_a = 0.0
             relax = False
+            bound = B_OTHERS
+            why = -1
             if a < 0:
                 step = other
                 prev_ok = False
@@ -293,11 +305,18 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # surface is passed only where the rows of its far side prove the part of the
                     # step beyond it free (checked at the step's end).
                     step = min(P[a, 6], other)
+                    if P[a, 6] <= other:
+                        bound = B_OWN
+                        if not relax_ok:
+                            why = B_AGAIN_OWN
+                        elif skip_free and not regime(P[a, 0]):
+                            why = B_FREE
                     if relax_ok and g_a < 0.0 and regime(P[a, 0]) and P[a, 6] < other:
                         # Inside a regime surface's negative set (convex in the pulled-back
                         # coordinates, like a lumen): as far as the others allow.
                         step = other
                         relax = True
+                        bound = B_REGIME
                     # Over-relaxed steps, kept only if the step's end is in the other phase (a
                     # crossing, bracketed: A, entered once, switched first) or A's g is still
                     # positive there and the clearance balls of both ends cover the step (no chord
@@ -313,10 +332,14 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                             if c_a < root <= other:
                                 step = root
                                 relax = True
+                                bound = B_SECANT
+                            elif root > other:
+                                why = B_PAST
                         else:
                             rise = 0.8 * (g_a - prev_g) / (s - prev_s) * c_a / g_a  # per µm, in clearance
                             step = min(2.0 * c_a / (1.0 - rise) if rise < 0.9 else 20.0 * c_a, 20.0 * c_a, other)
                             relax = True
+                            bound = B_AWAY
                     prev_ok = g_a > 0.0
                     if prev_ok:
                         for q in range(5):
@@ -326,11 +349,18 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 else:
                     step = other
                     prev_ok = False
+                    bound = B_INSIDE
             relax_ok = True
             step *= step_scale
             near = step <= hit
             if near:
                 step = 2.0 * hit
+                bound = B_PROBE
+            bnd[bound] += 1.0
+            if bound == B_OWN and why >= 0:
+                bnd[why] += 1.0
+            elif bound == B_OTHERS and o >= 0 and P[o, 0] == P_REACH:
+                bnd[B_REACH] += 1.0
             s_end = s + step
             at_face = s_end >= t_face
             if at_face:
@@ -368,6 +398,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                 if i < 0:
                     have = True
                     relax_ok = False
+                    bnd[B_AGAIN] += 1.0
                     continue
             elif phb == med and relax and not near:
                 i = find_row(Pb, nb, key)
@@ -376,6 +407,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # (inside it other primitives apply): from s again, on A's own clearance.
                     have = True
                     relax_ok = False
+                    bnd[B_AGAIN] += 1.0
                     continue
             if phb == med:
                 if near:

@@ -37,7 +37,8 @@ def copy_rows(dst, src, n):
 @njit(cache=True, nogil=True)
 def nearest(P, n, skip, key):
     """The row with the smallest clearance (not ``skip``, not a reach row), copied into ``key``;
-    returns (its index or -1, the smallest clearance of the other rows)."""
+    returns (its index or -1, the smallest clearance of the other rows, the index of that row or
+    -1)."""
     a = -1
     for i in range(n):
         if P[i, 0] == P_REACH or (skip[0] > 0.0 and same_key(P, i, skip)):
@@ -45,14 +46,17 @@ def nearest(P, n, skip, key):
         if a < 0 or P[i, 6] < P[a, 6]:
             a = i
     other = 1e300
+    o = -1
     for i in range(n):
         if i == a or (skip[0] > 0.0 and same_key(P, i, skip)):
             continue
-        other = min(other, P[i, 6])
+        if P[i, 6] < other:
+            other = P[i, 6]
+            o = i
     if a >= 0:
         for q in range(5):
             key[q] = P[a, q]
-    return a, other
+    return a, other, o
 
 
 @njit(cache=True, nogil=True)

@@ -22,7 +22,7 @@ import numpy as np
 from ..microstructure.region import context_tuple, phases, region_context, warm_regions
 from ..microstructure.surface import new_cache
 from ..params import WoodParams
-from ._surface_march import COUNTS, HIT, NEEDS_REGION, PURPOSES, TOL, march, new_work
+from ._surface_march import BOUNDS, COUNTS, HIT, NEEDS_REGION, PURPOSES, STEP_BOUNDS, TOL, march, new_work
 from .interface import SIDE
 
 # Internal steps [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are
@@ -66,6 +66,7 @@ class WoodSurface:
         self.regions = 0  # region contexts built (each widening counts)
         # point evaluations of the traces so far, by what each was for (_surface_march.PURPOSES)
         self.evaluations = dict.fromkeys(PURPOSES, 0)
+        self.steps = dict.fromkeys(STEP_BOUNDS, 0)  # their steps, by what bounded each (STEP_BOUNDS)
         self.threads = max(1, int(threads))  # slices of a beam traced side by side
 
     @staticmethod
@@ -152,8 +153,10 @@ class WoodSurface:
                   res[10][lo:hi] if log_events else res[10], memo[0], resume[sel],
                   res[8][lo:hi], res[9][lo:hi], memo[1])
             with _SHARED:
-                for name, v in zip(PURPOSES, memo[1][COUNTS:]):
+                for name, v in zip(PURPOSES, memo[1][COUNTS:BOUNDS]):
                     self.evaluations[name] += int(v)
+                for name, v in zip(STEP_BOUNDS, memo[1][BOUNDS:]):
+                    self.steps[name] += int(v)
                 memo[1][COUNTS:] = 0.0
                 free.append(memo)  # for the next slice on any thread: no more memos than threads
             with lock:
