@@ -154,12 +154,13 @@ def confirm_hours() -> float:
     return value
 
 
-def check(est: Estimate, *, what: str, yes: bool, disk_path=None, fit: str = "") -> None:
+def check(est: Estimate, *, what: str, yes: bool, disk_path=None, fit: str = "", note: str | None = None) -> None:
     """Refuse ``what`` if ``est`` clearly cannot fit this machine (even at 1/ACCURACY of the
-    estimate), or needs ``--yes`` and has not got it; warn where it may not fit.  Every estimate
-    checked is appended to the file ``TWRAY_ESTIMATES`` names, if any."""
+    estimate), or needs ``--yes`` and has not got it; warn where it may not fit.  A refusal is one
+    line: what it needs, ``fit`` (what would make it fit) and ``note`` (why it needs that much).
+    Every estimate checked is appended to the file ``TWRAY_ESTIMATES`` names, if any."""
     _record(est, what)
-    hint = f"; {fit}" if fit else ""
+    hint = (f"; {fit}" if fit else "") + (f"; {note}" if note else "")
     room = [("memory", est.memory, 0.8 * machine_memory(), f"than this machine's {size(machine_memory())}")]
     if disk_path is not None:
         free = free_disk(disk_path)
@@ -240,14 +241,20 @@ def compiling(kinds, processes: int) -> Estimate:
     return Estimate(cpu * processes, 0.0, 0.0)
 
 
-def first_run_line(command: str, est: Estimate, workers: int = 0) -> str | None:
-    """The line a command prints where ``est`` (:func:`compiling`) is not nothing: it compiles the
-    tracer's kernels first (in ``workers`` workers; 0: in itself)."""
+def first_run_note(est: Estimate, workers: int = 0) -> str | None:
+    """What a command says where ``est`` (:func:`compiling`) is not nothing: it compiles the tracer's
+    kernels first (in ``workers`` workers; 0: in itself)."""
     if not est.cpu_s > 0:
         return None
     who = f"each of the {workers} workers compiles" if workers else "it compiles"
-    return (f"twray {command}: first run of these sources here: {who} the tracer's kernels before its first "
-            f"trace ({hours(est.cpu_s)} in all, once)")
+    return f"first run of these sources here: {who} the tracer's kernels before its first trace ({hours(est.cpu_s)} " \
+           "in all, once)"
+
+
+def first_run_line(command: str, est: Estimate, workers: int = 0) -> str | None:
+    """:func:`first_run_note` as the line ``twray <command>`` prints."""
+    note = first_run_note(est, workers)
+    return None if note is None else f"twray {command}: {note}"
 
 
 def compiled(module: str, kernel: str) -> bool:

@@ -124,12 +124,13 @@ def run(job: TraceJob, *, out: Path | None = None, yes: bool = False, progress: 
     medium, centre, est = medium_of(job)
     rays = job.rays if job.target is None else job.target.max_rays
     compiling = limits.compiling({job.settings.medium_kind}, 1)
+    # Said in the refusal's one line where it is refused, else as a line of its own before it compiles.
+    limits.check(limits.startup(1) + compiling + est, what=f"`trace` of {rays} rays", yes=yes,
+                 fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
+                     "or a thinner sample", note=limits.first_run_note(compiling))
     first = limits.first_run_line("trace", compiling)
     if first and log is not None:
         log(first)
-    limits.check(limits.startup(1) + compiling + est, what=f"`trace` of {rays} rays", yes=yes,
-                 fit="trace fewer rays (--rays; a study traces them by shards), a narrower beam (--beam-um) "
-                     "or a thinner sample")
     result, summary = trace_medium(job, medium, centre, progress=progress)
     if out is not None:
         write_rays(result, summary, out, job_inputs(job, centre))

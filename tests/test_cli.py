@@ -302,7 +302,10 @@ def test_trace_oblique_beam_from_air_with_negative_angles(tmp_path, capsys):
     (["--beam-um", "1e9"], "a narrower beam (--beam-um)"),
     (["--thickness-mm", "10000"], "a thinner sample"),
 ])
-def test_trace_bad_input(tmp_path, capsys, extra, field):
+def test_trace_bad_input(tmp_path, tmp_path_factory, monkeypatch, capsys, extra, field):
+    # As on a first run of these sources, whose refusal also says it would compile the kernels first:
+    # still one line.
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path_factory.mktemp("kernels")))
     argv = ["trace", "--preset", "birch", "--thickness-mm", "0.05", "--delta-ri", "0.01",
             "--out", str(tmp_path / "r.nc")] + extra
     code, _, err = run(capsys, *argv)

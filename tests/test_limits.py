@@ -378,11 +378,13 @@ def test_a_first_run_of_these_sources_counts_compiling_the_kernels_and_says_so(t
                  str(tmp_path / "c"), "--results", str(tmp_path / "r")]) == 0
     err = capsys.readouterr().err
     assert "each of the 2 workers compiles the tracer's kernels before its first trace (4 CPU-min in all, once)" in err
-    # `twray trace` says it too, before it would compile (here it is refused for its CPU first).
+    # `twray trace` says it too, before it would compile; refused (here for its CPU), in the refusal's
+    # one line.
     monkeypatch.setenv(CONFIRM_ENV, "0.001")
     assert main(["trace", "--preset", "birch", "--thickness-mm", "0.1", "--delta-ri", "0.01", "--rays", "20"]) == 2
     err = capsys.readouterr().err
-    assert "twray trace: first run of these sources here: it compiles the tracer's kernels before its first trace " \
+    assert err.count("\n") == 1
+    assert "; first run of these sources here: it compiles the tracer's kernels before its first trace " \
            "(2 CPU-min in all, once)" in err and "add --yes" in err
     # A kernel of this checkout that a fresh process compiles into that cache is found there.
     assert not limits.compiled("rng", "uniform_table")
