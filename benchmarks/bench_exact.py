@@ -17,6 +17,9 @@ Writes the "exact" section of results/bench.json:
   how many exit directions agree to 1e-9 rad.
 - per_interface_1mm: µs per interface of `exact` on 1 mm of birch (300 rays, ΔRI 0.01), warm, one
   core, the measure of the goal table in results/BENCH.md;
+- along_1mm: the same scene with the steps proven along the ray (``wood_surface.ALONG``) and with
+  the balls alone, interleaved in one process: µs an interface (CPU), evaluations and steps an
+  interface, and how many exit directions part;
 - first_compile: `twray trace --preset birch --thickness-mm 0.1 --rays 20` with `exact` and with
   `accurate` into an empty kernel cache (a first run of a checkout's sources on a machine: it
   compiles the kernels), then the same again (kernels loaded): wall and CPU seconds of each, the
@@ -218,6 +221,46 @@ def per_interface_1mm(_: str) -> dict:
             "steps_by_bound_per_interface": _bounds(m.steps, ev)}
 
 
+@_part("along_1mm")
+def along_1mm(_: str) -> dict:
+    """The march with steps proven along the ray (``along``, not yet `exact`'s default) against the
+    balls alone, on the scene of per_interface_1mm, interleaved in one process (CPU seconds, best
+    of three each, twice over), and how far the exit directions part."""
+    import pipeline.optics.wood_surface as ws
+    wood_medium, square_beam, Optics, settings_for, trace, build_params = _setup()
+    _compile("exact")
+    s = settings_for("exact")
+    beam = square_beam(300, 150.0, seed=1)
+    best, last = {}, {}
+    for along in (False, True, False, True):
+        ws.ALONG = along
+        for _ in range(3):
+            m = wood_medium(build_params("birch"), seed=1, thickness_um=1000.0, voxel_um=0.5, settings=s)
+            c0 = time.process_time()
+            r = trace(m, beam, Optics(1.50, 1.49), s)
+            dt = time.process_time() - c0
+            best[along] = min(best.get(along, dt), dt)
+        last[along] = (r, m)
+    ws.ALONG = False
+    out = {"rays": 300, "thickness_mm": 1.0, "delta_ri": 0.01}
+    for along, name in ((False, "balls"), (True, "along")):
+        r, m = last[along]
+        ev = int(r.events.sum())
+        out[name] = {"interfaces": ev, "us_per_interface": round(1e6 * best[along] / ev, 2),
+                     "evaluations_per_interface": round(sum(m.evaluations.values()) / ev, 3),
+                     "evaluations_by_purpose_per_interface": {k: round(v / ev, 3) for k, v in m.evaluations.items()},
+                     "steps_per_interface": round(sum(m.steps[k] for k in ("own", "others", "secant", "away", "regime",
+                                                                            "inside", "probe", "again", "cross")) / ev, 3),
+                     "steps_by_bound_per_interface": _bounds(m.steps, ev)}
+    a, b = last[False][0], last[True][0]
+    ang = np.arccos(np.clip((a.direction * b.direction).sum(axis=1), -1.0, 1.0))
+    out["time_ratio"] = round(best[True] / best[False], 3)
+    out["rays_moved"] = {"over_1e-9_rad": int((ang > 1e-9).sum()), "over_1e-6_rad": int((ang > 1e-6).sum()),
+                         "over_1e-3_rad": int((ang > 1e-3).sum()),
+                         "interface_counts_differ": int((a.events != b.events).sum())}
+    return out
+
+
 def _bounds(steps: dict, interfaces: int) -> dict:
     """Steps an interface by what bounded them; A's own clearance for a reason the march does not
     count (no secant yet, mostly: A's first step or a new segment) is what the others leave."""
@@ -364,6 +407,7 @@ def main():
              "lazy_1_5mm_accurate": lambda: fresh("lazy_1_5mm_voxels", "accurate"),
              "refinement": lambda: fresh("refinement"), "lattices": lambda: fresh("lattices"),
              "normals": lambda: fresh("normals"), "per_interface_1mm": lambda: fresh("per_interface_1mm"),
+             "along_1mm": lambda: fresh("along_1mm"),
              "whole_process": lambda: fresh("whole_process"), "first_compile": lambda: fresh("first_compile")}
     only = args.only.split(",") if args.only else list(parts)
     unknown = sorted(set(only) - set(parts))

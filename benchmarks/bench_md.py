@@ -156,6 +156,20 @@ def render(doc: dict, scans: list | None = None) -> str:
                    "interface; docs/performance.md, \"What bounds the steps\"):", "",
                    "| what bounded the step | steps an interface |", "|---|---|"]
             md += [f"| {words} | {b[k]:.2f} |" for k, words in _BOUND_WORDS.items() if k in b]
+        g = e.get("along_1mm")
+        if g:
+            o, n = g["balls"], g["along"]
+            md += ["", "Steps proven along the ray (part `along_1mm`, the same scene, the two marches interleaved in "
+                   "one process, CPU; not yet `exact`'s default: it needs the next version and its retrace; "
+                   "docs/performance.md, \"Proven steps along the ray, measured\"):", "",
+                   "| march | µs an interface | evaluations an interface | steps an interface |", "|---|---|---|---|",
+                   f"| balls alone (`exact` 4) | {o['us_per_interface']:.2f} | {o['evaluations_per_interface']:.2f} | "
+                   f"{o['steps_per_interface']:.2f} |",
+                   f"| proven along the ray | {n['us_per_interface']:.2f} | {n['evaluations_per_interface']:.2f} | "
+                   f"{n['steps_per_interface']:.2f} |", "",
+                   f"Time ratio {g['time_ratio']:.2f}; of {g['rays']} rays, {g['rays_moved']['over_1e-9_rad']} exit "
+                   f"directions part by more than 1e-9 rad, {g['rays_moved']['over_1e-6_rad']} by more than 1e-6 rad, "
+                   f"{g['rays_moved']['interface_counts_differ']} interface counts differ."]
         z = e["lazy_1_5mm"]
         md += ["", f"1000 rays through 1.5 mm of birch with `exact`, cold, {z['threads']} threads: "
                f"{z['seconds']:.2f} s ({z['cpu_seconds']:.1f} CPU-s), of which {z['seconds_first_region']:.2f} s "
@@ -280,7 +294,8 @@ _BOUND_WORDS = {"own": "A's own clearance (A approached from outside)",
                 "others_reach": "… the reach row's", "secant": "a secant step past A's root",
                 "away": "a longer step away from A", "regime": "a long step across a regime surface",
                 "inside": "inside A, as far as the others allow", "probe": "the 2·hit probe",
-                "again": "(long steps that failed their check and were taken again)"}
+                "again": "(long steps that failed their check and were taken again)",
+                "cross": "across a lumen's root, to where the ray is surely inside it (proven steps only)"}
 
 
 def _purposes(per_interface: dict) -> str:

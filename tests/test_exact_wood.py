@@ -98,23 +98,26 @@ def _generator_column_changes(params, seed, r_um, l_um, thickness_um, voxel=1.0 
     return int(np.count_nonzero(np.diff(col.astype(np.int8))))
 
 
+@pytest.mark.parametrize("along", [False, True])
 @pytest.mark.parametrize("preset,changes", [("birch", {}), ("balsa", {}), ("birch", {"fibre_tip_um": 100.0})])
-def test_at_zero_delta_ri_the_interfaces_are_the_generators_phase_changes(preset, changes):
+def test_at_zero_delta_ri_the_interfaces_are_the_generators_phase_changes(preset, changes, along):
     """Index matched, rays go straight; each one's interface count equals the phase changes the
-    generator shows on its line sampled at 1/64 µm, counted independently."""
+    generator shows on its line sampled at 1/64 µm, counted independently; with the balls alone
+    and with the steps proven along the ray (``along``)."""
     params = build_params(preset, overrides=changes)
     thickness = 150.0
     beam = square_beam(12, 300.0, seed=4)
-    res = trace(WoodSurface(params, thickness_um=thickness, seed=2), beam, Optics(1.5, 1.5), EXACT)
+    res = trace(WoodSurface(params, thickness_um=thickness, seed=2, along=along), beam, Optics(1.5, 1.5), EXACT)
     assert np.array_equal(res.direction, np.tile([0.0, 1.0, 0.0], (12, 1)))
     expected = [_generator_column_changes(params, 2, r, l, thickness) for r, _, l in beam.origins]
     assert res.events.tolist() == expected and sum(expected) > 12 * 5
 
 
-def test_oblique_rays_cross_every_phase_change_of_their_line():
+@pytest.mark.parametrize("along", [False, True])
+def test_oblique_rays_cross_every_phase_change_of_their_line(along):
     """Oblique lines at 20-80° through birch with ray cells and tips and a laminate: interface
     counts equal the phase changes of the surface model sampled every 1/64 µm on the line
-    (itself the generator, bit for bit, above)."""
+    (itself the generator, bit for bit, above); with and without the steps proven along the ray."""
     for params in (build_params("birch", overrides={"fibre_tip_um": 120.0}),
                    build_params("birch", overrides={"laminate": (0, 60, -45), "ply_thickness_um": 30.0})):
         thickness = 60.0
@@ -123,7 +126,7 @@ def test_oblique_rays_cross_every_phase_change_of_their_line():
             a = math.radians(angle)
             d = np.array([math.sin(a) * math.cos(0.7), math.cos(a), math.sin(a) * math.sin(0.7)])
             o = np.column_stack([rng.uniform(0, 200, 4), np.zeros(4), rng.uniform(0, 200, 4)])
-            res = trace(WoodSurface(params, thickness_um=thickness, seed=6), Beam(o, d, np.arange(4)),
+            res = trace(WoodSurface(params, thickness_um=thickness, seed=6, along=along), Beam(o, d, np.arange(4)),
                         Optics(1.5, 1.5), EXACT)
             length = thickness / d[1]
             s = (np.arange(int(length * 64)) + 0.5) / 64
@@ -249,13 +252,14 @@ def _missed_along_path(surf, origin, direction, n_wall, n_poly, per_um):
     return missed, ev
 
 
-def test_along_refracted_paths_no_segment_holds_a_phase_change_of_the_generator():
+@pytest.mark.parametrize("along", [False, True])
+def test_along_refracted_paths_no_segment_holds_a_phase_change_of_the_generator(along):
     """At ΔRI ≠ 0: between the interfaces a ray stopped at, the generator's phase sampled every
     1/256 µm never changes.  Rays 7 and 731 of this beam once stepped over polymer chords of
     0.06–0.09 µm where a ray-cell lumen is entered inside its end wall (a step kept because that
     lumen had switched once, while inside it the end walls switched as well)."""
     p = build_params("birch")
-    surf = WoodSurface(p, thickness_um=1000.0, seed=1)
+    surf = WoodSurface(p, thickness_um=1000.0, seed=1, along=along)
     beam = square_beam(1000, 150.0, seed=1)
     d = beam.unit_directions()
     total = 0
@@ -266,7 +270,8 @@ def test_along_refracted_paths_no_segment_holds_a_phase_change_of_the_generator(
     assert total > 200
 
 
-def test_halving_every_step_and_tolerance_leaves_the_rays_bit_for_bit():
+@pytest.mark.parametrize("along", [False, True])
+def test_halving_every_step_and_tolerance_leaves_the_rays_bit_for_bit(along):
     """No fixed step is trusted, and none decides a result: stepping half the proven clearance,
     with half the probe and bracket tolerances, lands every crossing on the same lattice point
     (docs/methods.md#the-exact-method), so nearly every ray comes out bit for bit the same; the
@@ -274,8 +279,8 @@ def test_halving_every_step_and_tolerance_leaves_the_rays_bit_for_bit():
     params = build_params("birch")
     beam = square_beam(60, 200.0, seed=9)
     optics = Optics(1.53, 1.52)
-    a = trace(WoodSurface(params, thickness_um=250.0, seed=1), beam, optics, EXACT)
-    b = trace(WoodSurface(params, thickness_um=250.0, seed=1, hit=5e-10, tol=5e-10, step_scale=0.5),
+    a = trace(WoodSurface(params, thickness_um=250.0, seed=1, along=along), beam, optics, EXACT)
+    b = trace(WoodSurface(params, thickness_um=250.0, seed=1, hit=5e-10, tol=5e-10, step_scale=0.5, along=along),
               beam, optics, EXACT)
     assert a.events.sum() > 60 * 20 and (b.extras["evaluations"] > a.extras["evaluations"]).all()
     same = np.all(a.direction == b.direction, axis=1) & np.all(a.position == b.position, axis=1)

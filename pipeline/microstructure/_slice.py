@@ -273,10 +273,12 @@ def _vessel_phase(pR, pT, VG, VB, vessels, first, wall):
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
 def _squeeze_and_classify(pT, c, W2, lam, rays, nr):
-    """Ray band test and squeeze pull-back.  Returns (pT after squeeze, ray row or -1)."""
+    """Ray band test and squeeze pull-back.  Returns (pT after squeeze, ray row or -1, the
+    squeeze's slope d(pT after)/d(pT) by the chain rule through its rows: 1 inside a band)."""
     for r in range(nr):
         if abs(pT - rays[np.uint64(r), 0]) < rays[np.uint64(r), 1]:
-            return pT, r
+            return pT, r, 1.0
+    slope = 1.0
     for rs in range(nr):
         ru = np.uint64(rs)
         d = pT - rays[ru, 0]
@@ -285,8 +287,9 @@ def _squeeze_and_classify(pT, c, W2, lam, rays, nr):
             # Pull-back of the squeeze: the band edge maps to the removed row's edge.
             q = 1.0 - x / lam
             shift = rays[ru, 6] * (c - W2) * q * q * q
+            slope *= 1.0 - 3.0 * rays[ru, 6] * (c - W2) * q * q / lam
             pT = pT + shift if d > 0 else pT - shift
-    return pT, -1
+    return pT, -1, slope
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -441,7 +444,7 @@ def _eval_bucket(out, order, start, stop, nL, j_lo, j_hi, rotated, Rp, Tp, P1, p
                 sT = SQ[i, j]
                 r = SR[i, j]
             else:
-                sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
+                sT, r, _ = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
                 if not rotated:
                     SQ[i, j] = sT
                     SR[i, j] = r

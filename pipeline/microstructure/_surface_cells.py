@@ -17,7 +17,7 @@ from ._slice import _in_tip_wall, _polygon_phase, centre_tables, face_distance, 
 from ._vessels import member_of
 
 from ._surface_rows import (P_FACE, P_LUMEN, P_PLATE, P_REACH, P_TIP, P_TIP_END, R_NODE, R_TIP, R_WALL,
-                            _ellipse_margin, _row)
+                            _ellipse_margin, _row, _row_x)
 
 CACHE_SLOTS = 1 << 15  # direct-mapped cache of control values and fibre cells (a power of 2)
 NEAR = 16  # the near cache: nodes (n mod NEAR, m mod NEAR) with their four control values at one slice
@@ -208,9 +208,11 @@ def _fibre(seed, M, L, n, m, vessels, nv, NW, have, n0, m0, FErow, FJrow, CK, CV
 # and nine numbers, some 115 words copied at every point (docs/performance.md: about 13 % of the
 # march).  The other phases (_polygon, _ray_cell) stay calls: inlined too, evaluate was slower.
 @njit(inline="always", **NOREF)
-def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, want):
+def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, want, sq_slope):
     """Fibre lumens: the phase from the four candidates of the point's cell, the rows from the
-    lumens that reach the 2 × 2 cells around the point (a ball of half a cell meets no other)."""
+    lumens that reach the 2 × 2 cells around the point (a ball of half a cell meets no other).
+    Each lumen's row holds its offset and semi-axes (C_DR..), the reach row the squeeze's slope
+    ``sq_slope`` at the point (for a ray's proven steps, pipeline/microstructure/surface_ray.py)."""
     c = M[PITCH]
     j0 = w_fl >> 1
     fr = pR / c - n_fl
@@ -278,7 +280,7 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
                 # No lumen at this L; one opens only once both semi-axes grow past 0.
                 dist = math.hypot(dR, dT) - max(aR, aT, 0.0)
                 clr = max(-min(aR, aT) / (rn + rw), dist / kk)
-                np_ = _row(P, np_, P_LUMEN, n, m, 0, 0, max(dist, 0.0) + 1.0, clr)
+                np_ = _row_x(P, np_, P_LUMEN, n, m, 0, 0, max(dist, 0.0) + 1.0, clr, 0.0, 0.0, 0.0, 0.0)
                 continue
             ge = _ellipse_margin(dR, dT, aR, aT)
             clr = abs(ge) / kk
@@ -291,7 +293,7 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
                 elif flag == 1:  # outside a closed lumen: it must open and be entered
                     viol = max(-g1 if g1 < 0.0 else 0.0, -g2 if g2 < 0.0 else 0.0)
                     clr = max(clr, viol)
-            np_ = _row(P, np_, P_LUMEN, n, m, 0, 0, ge, clr)
+            np_ = _row_x(P, np_, P_LUMEN, n, m, 0, 0, ge, clr, dR, dT, aR, aT)
             if (ge < 0.0 or wanted) and tips and not math.isnan(lo):
                 for side in range(2):
                     b = lo if side == 0 else hi
@@ -301,7 +303,7 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
                     d = dR * FJ[1 + 3 * w] + dT * FJ[2 + 3 * w] - FJ[3 + 3 * w]
                     gs = abs(d) - Nt
                     np_ = _row(P, np_, P_TIP, n, m, w, 0, gs, abs(gs) / (k_in + rt[R_TIP]))
-    np_ = _row(P, np_, P_REACH, 1, 0, 0, 0, 0.5 * c, 0.5 * c / (k_in + 2.0 * rn + rw))
+    np_ = _row_x(P, np_, P_REACH, 1, 0, 0, 0, 0.5 * c, 0.5 * c / (k_in + 2.0 * rn + rw), sq_slope, pR, sT, 0.0)
     if wanted:
         return np.uint8(0), np_
     inside = any_inside4(C4, (np.uint64(0), np.uint64(0), np.uint64(0), np.uint64(0)), pR, sT)
@@ -377,7 +379,8 @@ def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
         g = face_distance(pR, sT, FE, bi, bj, ii, jj, bd) - 0.5 * (Nt[bi, bj] + Nt[ii, jj])
         far = math.hypot(pR - 0.5 * (FE[ii, jj, 0] + FE[bi, bj, 0]), sT - 0.5 * (FE[ii, jj, 1] + FE[bi, bj, 1]))
         rate = rn * (1.0 + 2.0 * far / e) + rw
-        np_ = _row(P, np_, P_FACE, bi + n_lo, bj + m_lo, ii + n_lo, jj + m_lo, g, abs(g) / (k_in + rate))
+        np_ = _row_x(P, np_, P_FACE, bi + n_lo, bj + m_lo, ii + n_lo, jj + m_lo, g, abs(g) / (k_in + rate),
+                     (FE[ii, jj, 0] - FE[bi, bj, 0]) / e, (FE[ii, jj, 1] - FE[bi, bj, 1]) / e, rate, 0.0)
     if not math.isnan(LO[bi, bj, 0]):  # the nearest cell's end plates
         plate = 0.5 * M[PLATE]
         g1 = (L - LO[bi, bj, 0]) - plate

@@ -23,7 +23,15 @@ P_TIP_END = 10  # where a tip wall begins or ends along L (n, m, side)
 P_FACE = 11  # balsa: wall along a Voronoi face (n, m, neighbour n, neighbour m)
 P_PLY = 12  # ply boundary (the index of the ply above it)
 P_REACH = 13  # not a surface: how far the point's candidate set is valid
-N_COLS = 7
+# Row columns: kind, ids a-d, g, clearance; then what a ray's proven step needs
+# (pipeline/microstructure/surface_ray.py): a fibre lumen's offset from its centre and its
+# semi-axes in the pulled-back plane (semi-axis 0: no ellipse), a balsa face's unit normal (towards
+# the neighbour) and how fast it moves with L (C_DR, C_DT, C_AR), the fibre cells' reach row's
+# squeeze slope d(squeezed T)/d(pulled-back T) and the pulled-back point (R, squeezed T); and,
+# written by the march, how far along the ray the lumen is surely entered (0: not known).
+C_DR, C_DT, C_AR, C_AT, C_CROSS = 7, 8, 9, 10, 11
+C_SQUEEZE, C_PR, C_ST = 7, 8, 9
+N_COLS = 12
 MAX_PRIMS = 160
 VBUCKET = 8  # nodes per side of a vessel bucket
 VESSEL_REACH = 24  # nodes: clusters with a member this near a listed point are listed whole
@@ -69,8 +77,22 @@ def _row(P, n, kind, a, b, c, d, g, clr):
         P[n, 4] = d
         P[n, 5] = g
         P[n, 6] = clr
+        for q in range(C_DR, N_COLS):
+            P[n, q] = 0.0
         return n + 1
     return n
+
+
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def _row_x(P, n, kind, a, b, c, d, g, clr, x0, x1, x2, x3):
+    """:func:`_row` with columns C_DR.. as well (C_CROSS 0)."""
+    m = _row(P, n, kind, a, b, c, d, g, clr)
+    if m > n:
+        P[n, C_DR] = x0
+        P[n, C_DT] = x1
+        P[n, C_AR] = x2
+        P[n, C_AT] = x3
+    return m
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")

@@ -64,6 +64,58 @@ def _patch_lipschitz(seed, M, gi0: int, gj0: int, shape, G: float) -> np.ndarray
     return out
 
 
+# How far [grid cells] a ray's proven step may reach from its start (surface_ray.STEP_CELLS): a
+# tile's curvature bound covers the cells that far around it.
+CURVE_REACH = 17
+
+
+@functools.lru_cache(maxsize=8192)
+def _tile_curvature(seed: int, M_bytes: bytes, a: int, b: int, G: float) -> tuple:
+    """(Kxx, Kyy, Kxy) of tile (a, b): the largest second differences of the distortion grid,
+    along R, along T and across (a cell's four corners), as norms of their (dR, dT) over G, for
+    every difference whose middle node (or cell) lies within CURVE_REACH cells of the tile.  Across
+    a grid line the bilinear pull-back's slope jumps by at most Kxx (Kyy); within a cell it turns at
+    most Kxy / G per µm (docs/methods.md#proven-steps-along-the-ray)."""
+    t, r = K.TILE, CURVE_REACH
+    grid = np.empty((3 * t + 1, 3 * t + 1, 2))
+    for da in range(3):
+        for db in range(3):
+            grid[da * t:da * t + t + 1, db * t:db * t + t + 1] = _tile(seed, M_bytes, a + da - 1, b + db - 1)[0]
+    k = _second_differences(grid[t - r - 1:2 * t + r + 2, t - r - 1:2 * t + r + 2])
+    return tuple(float(x) * (1.0 + 1e-9) / G for x in k)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _second_differences(E):
+    """The largest norms of E's (n, n, 2) second differences along axis 0, along axis 1 (middle
+    nodes off the border) and across (each cell's four corners)."""
+    kxx = kyy = kxy = 0.0
+    n0, n1 = E.shape[0], E.shape[1]
+    for i in range(n0 - 1):
+        for j in range(n1 - 1):
+            a = b = c = 0.0
+            for q in range(2):
+                x = E[i + 1, j + 1, q] - E[i, j + 1, q] - E[i + 1, j, q] + E[i, j, q]
+                c += x * x
+                if 0 < i and 0 < j:
+                    y = E[i + 1, j, q] - 2.0 * E[i, j, q] + E[i - 1, j, q]
+                    z = E[i, j + 1, q] - 2.0 * E[i, j, q] + E[i, j - 1, q]
+                    a += y * y
+                    b += z * z
+            kxx = max(kxx, a)
+            kyy = max(kyy, b)
+            kxy = max(kxy, c)
+    return math.sqrt(kxx), math.sqrt(kyy), math.sqrt(kxy)
+
+
+def _patch_curvature(seed, M, gi0: int, gj0: int, shape, G: float) -> np.ndarray:
+    """Per tile of a patch of whole tiles, :func:`_tile_curvature`: (tiles along R, along T, 3)."""
+    a0, b0 = gi0 // K.TILE, gj0 // K.TILE
+    na, nb = (shape[0] - 1) // K.TILE, (shape[1] - 1) // K.TILE
+    key = M.tobytes()
+    return np.array([[_tile_curvature(int(seed), key, a0 + i, b0 + j, G) for j in range(nb)] for i in range(na)])
+
+
 def _warm_tiles(seed, M, tiles, G: float, threads: int) -> None:
     """Compute the distortion tiles ``tiles`` [(a, b)] and their pull-back bounds into their caches
     on ``threads`` threads (the tile kernel releases the GIL); the same values as one by one."""
@@ -88,7 +140,7 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_r
     G = c / K.GRID_PER_PITCH
     stats = np.zeros(N_STATS, np.int64)
     plies = _ply_extents(params, seed, thickness_um, r_range, l_range, t_range)
-    rows, seeds, spans, patches, origins, lams, ves, nvs, boxes = [], [], [], [], [], [], [], [], []
+    rows, seeds, spans, patches, origins, lams, curves, ves, nvs, boxes = [], [], [], [], [], [], [], [], [], []
     for (_, cs, sn, oR, oT, oL, _, t0, t1), pseed, r_lo, r_hi, tt_lo, tt_hi in plies:
         _warm_tiles(pseed, M, _tiles_read(M, r_lo, r_hi, tt_lo, tt_hi), G, threads)
         patch, gi0, gj0 = _patch(pseed, M, r_lo - 1.0, r_hi + 1.0, tt_lo - 1.0, tt_hi + 1.0, stats)
@@ -105,6 +157,7 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_r
         patches.append(patch)
         origins.append((gi0, gj0))
         lams.append(_patch_lipschitz(pseed, M, gi0, gj0, patch.shape, G))
+        curves.append(_patch_curvature(pseed, M, gi0, gj0, patch.shape, G))
         ves.append(vessels[:nv])
         nvs.append(nv)
         boxes.append(box)
@@ -121,6 +174,9 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_r
     LT = np.zeros((len(plies), max(t.shape[0] for t in lams), max(t.shape[1] for t in lams)))
     for q, t in enumerate(lams):
         LT[q, :t.shape[0], :t.shape[1]] = t
+    CT = np.zeros(LT.shape + (3,))
+    for q, t in enumerate(curves):
+        CT[q, :t.shape[0], :t.shape[1]] = t
     P = np.zeros((len(plies), ni, nj, 2))
     for q, p in enumerate(patches):
         P[q, :p.shape[0], :p.shape[1]] = p
@@ -135,7 +191,7 @@ def region_context(params, seed: int, thickness_um: float, r_range, l_range, t_r
         "n_vessels": np.array(nvs, np.int64), "boxes": np.array(boxes, np.int64),
         "ply_thickness": float(params.ply_thickness_um) if params.laminate is not None else math.inf,
         "first_ply": int(plies[0][0][0]), "bucket_shape": np.array([b[0] for b in buckets], np.int64),
-        "bucket_ptr": BP, "bucket_list": BL,
+        "bucket_ptr": BP, "bucket_list": BL, "curvature": CT,
     }
 
 
@@ -204,7 +260,7 @@ def context_tuple(ctx: dict) -> tuple:
     return (ctx["M"], ctx["rates"], ctx["plies"], ctx["seeds"], ctx["spans"], ctx["patches"],
             ctx["patch_shape"], ctx["origins"], ctx["lipschitz"], ctx["vessels"], ctx["n_vessels"],
             ctx["boxes"], ctx["ply_thickness"], ctx["first_ply"], ctx["bucket_shape"], ctx["bucket_ptr"],
-            ctx["bucket_list"])
+            ctx["bucket_list"], ctx["curvature"])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

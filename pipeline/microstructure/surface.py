@@ -40,9 +40,9 @@ from ._slice import _squeeze_and_classify, _vessel_phase, add_ray_row, vessel_ou
 from ._surface_cells import (F_CALLEE, F_RAYS, F_VB, F_VG, I_VL, I_VSEL, NOREF, _ellipses, _polygon,  # noqa: F401
                              group_cached, new_cache, node_cached, span_cached)
 
-from ._surface_rows import (INF, MAX_PRIMS, N_COLS, P_BAND, P_FACE, P_LUMEN, P_PLATE, P_PLY, P_RAY_END,  # noqa: F401
+from ._surface_rows import (C_CROSS, INF, MAX_PRIMS, N_COLS, P_BAND, P_FACE, P_LUMEN, P_PLATE, P_PLY, P_RAY_END,  # noqa: F401
                             P_RAY_LUMEN, P_REACH, P_TIP, P_TIP_END, P_VESSEL_IN, P_VESSEL_OUT, P_VESSEL_SHARED,
-                            R_BAND, R_NODE, R_SQ, R_SQ_L, VBUCKET, VESSEL_REACH, _ellipse_margin, _row, rates)
+                            R_BAND, R_NODE, R_SQ, R_SQ_L, VBUCKET, VESSEL_REACH, _ellipse_margin, _row, _row_x, rates)
 
 put_row = _row  # (P, n, kind, a, b, c, d, g, clearance) -> n + 1: how any surface lists a row for the march
 
@@ -120,7 +120,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
             gb = abs(pT - t_r) - b
             np_ = _row(P, np_, P_BAND, k, 0, 0, 0, gb, abs(gb) / (lam_p + rt[R_BAND]))
         np_ = _row(P, np_, P_REACH, 0, 0, 0, 0, c, c / (lam_p + rt[R_BAND]))
-    sT, r = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
+    sT, r, sq_slope = _squeeze_and_classify(pT, c, W2, lam, rays, nr)
     if r >= 0:
         return _ray_cell(seed, M, Ls, pR, sT, rays[r:r + 1], lam_p, rt, P, np_, want[0] > 0.0, WF)
     n_fl = np.int64(math.floor(pR * inv_c))
@@ -207,7 +207,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
             return np.uint8(ph), np_
     if M[SHAPE] == 1.0:
         return _polygon(seed, M, Ls, pR, sT, VL, ns, k_in, rt, P, np_, cache)
-    return _ellipses(seed, M, Ls, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, want)
+    return _ellipses(seed, M, Ls, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, want, sq_slope)
 
 
 @njit(**NOREF)
@@ -243,10 +243,10 @@ def _ray_cell(seed, M, L, pR, pT, ray, lam_p, rt, P, np_, wanted, WF):
             Lc = L0 + off + (ell + 0.5) * h
             if aT <= 0.0 or aL <= 0.0:
                 g = math.hypot(pT - Tc, 0.0) - max(aT, 0.0)
-                np_ = _row(P, np_, P_RAY_LUMEN, k, s, ell, 0, g, abs(g) / k3)
+                np_ = _row_x(P, np_, P_RAY_LUMEN, k, s, ell, 0, g, abs(g) / k3, pT - Tc, L - Lc, aT, aL)
                 continue
             g = _ellipse_margin(pT - Tc, L - Lc, aT, aL)
-            np_ = _row(P, np_, P_RAY_LUMEN, k, s, ell, 0, g, abs(g) / k3)
+            np_ = _row_x(P, np_, P_RAY_LUMEN, k, s, ell, 0, g, abs(g) / k3, pT - Tc, L - Lc, aT, aL)
             if g >= 0.0 and not wanted:
                 continue
             ida = k * 8 + s
@@ -314,7 +314,7 @@ def evaluate_at(R, T, L, lq, ctx, P, cache, want):
     :func:`context_tuple`.  Inlined where it is called (its branches live in the two calls above):
     a call passes every array of the context and the cache, hundreds of words."""
     (M, rt, plies, seeds, spans, patches, pshape, origins, lips, vessels, nvs, boxes, th, first, bsh, bptr,
-     blist) = ctx
+     blist, _curv) = ctx
     nply = plies.shape[0]
     q = _ply_of(T, spans, th, first, nply)
     ph, n = evaluate(R, T, L, lq, seeds[q], M, plies[q], patches[q, :pshape[q, 0], :pshape[q, 1]],

@@ -354,7 +354,7 @@ def gradient_at(R, T, L, ctx, key, cache, out):
     """:func:`gradient` in the ply holding T (``ctx``: :func:`~pipeline.microstructure.region.context_tuple`);
     a ply boundary's is +T."""
     (M, rt, plies, seeds, spans, patches, pshape, origins, lips, vessels, nvs, boxes, th, first, bsh, bptr,
-     blist) = ctx
+     blist, _curv) = ctx
     if key[0] == P_PLY:
         out[0], out[1], out[2] = 0.0, 1.0, 0.0
         return True

@@ -23,9 +23,10 @@ import numpy as np
 from numba import njit
 
 from .._intrinsics import borrowed, carve
-from ..microstructure.surface import MAX_PRIMS, N_COLS, P_REACH
+from ..microstructure.surface import C_CROSS, MAX_PRIMS, N_COLS, P_BAND, P_LUMEN, P_RAY_LUMEN, P_REACH
+from ..microstructure.surface_ray import N_FRAME
 from ._surface_march_rows import copy_rows, far_unproven, find_row, nearest, regime, same_key, switched
-from ._surface_points import surface_at, surface_normal
+from ._surface_points import ray_clearances, surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
 
 NEEDS_REGION = NEEDS_CHUNK  # the ray left the precomputed region: the caller widens it and traces again
@@ -46,12 +47,13 @@ PURPOSES = ("start", "step", "regime_root", "root", "lattice_guess", "lattice_bi
 # steps"): A's own clearance and why no longer step was taken, the others' (the reach row's among
 # them), the longer steps, the probe, and long steps that failed their check and were taken again.
 STEP_BOUNDS = ("own", "own_free", "own_past_others", "own_again", "others", "others_reach", "secant", "away",
-               "regime", "inside", "probe", "again")
-B_OWN, B_FREE, B_PAST, B_AGAIN_OWN, B_OTHERS, B_REACH, B_SECANT, B_AWAY, B_REGIME, B_INSIDE, B_PROBE, B_AGAIN = \
-    range(len(STEP_BOUNDS))
+               "regime", "inside", "probe", "again", "cross")
+(B_OWN, B_FREE, B_PAST, B_AGAIN_OWN, B_OTHERS, B_REACH, B_SECANT, B_AWAY, B_REGIME, B_INSIDE, B_PROBE, B_AGAIN,
+ B_CROSS) = range(len(STEP_BOUNDS))
 COUNTS = 3 * ROWS + 6 * 3 + 5 * 5  # after three row tables, six vectors and five keys: the counts
 BOUNDS = COUNTS + len(PURPOSES)
-WORK = BOUNDS + len(STEP_BOUNDS)
+FRAME = BOUNDS + len(STEP_BOUNDS)  # a ray's frame at a point (surface_ray.ray_frame)
+WORK = FRAME + N_FRAME
 
 
 def new_work() -> np.ndarray:
@@ -60,7 +62,7 @@ def new_work() -> np.ndarray:
     bounded them (:data:`STEP_BOUNDS`, from :data:`BOUNDS` on) start at zero and add up over the
     marches it serves."""
     work = np.empty(WORK)
-    work[COUNTS:] = 0.0
+    work[COUNTS:FRAME] = 0.0
     return work
 
 
@@ -182,7 +184,7 @@ def _lattice_bracket(X, d, s, s_end, lo, hi, med, single, lq, ctx, P, Pa, Pb, ca
 
 @njit(cache=True, nogil=True)
 def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fseed, ctx,
-               hit, tol, step_scale, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache,
+               hit, tol, step_scale, along, out_pos, out_dir, status, events, path, evals, passes, medium_out, log, cache,
                resume, skips, stop, work):
     """Trace rays from ``pos`` (N, 3) [µm] with unit ``dirs`` through the wood between T = 0 and
     T = ``thickness``; writes the exit point and direction, status, interfaces, path length [µm],
@@ -203,6 +205,10 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     line in one interval: A switches at most once), unless the primitive crossed last is still free
     to switch (one free primitive per step).  The phase at the step's end tells whether a primitive
     switched; a switch is then bracketed by regula falsi on its g and put on the lattice.
+
+    ``along``: each step's clearances are first raised to the bounds proven along d where the
+    medium has them (:func:`~pipeline.microstructure.surface_ray.along_clearances`), and a step may
+    go across a lumen's root to where the ray is surely inside it (docs/methods.md#proven-steps-along-the-ray).
     """
     # The caller owns every array throughout: borrowed and carved, they carry no reference counts
     # (an atomic add and a call wherever one is passed on).
@@ -210,6 +216,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
     cache = borrowed(cache)
     cnt = carve(work, COUNTS, (len(PURPOSES),))
     bnd = carve(work, BOUNDS, (len(STEP_BOUNDS),))
+    frame = carve(work, FRAME, (N_FRAME,))
     P = carve(work, 0, (MAX_PRIMS, N_COLS))
     Pa = carve(work, ROWS, (MAX_PRIMS, N_COLS))
     Pb = carve(work, 2 * ROWS, (MAX_PRIMS, N_COLS))
@@ -282,6 +289,9 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     st = NEEDS_REGION
                     break
             have = False
+            if along:
+                # The rows' balls, raised to proven steps along d where the medium has them.
+                ray_clearances(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], d, ctx, P, n, frame, skip)
             a, other, o = nearest(P, n, skip, key)
             # The primitive crossed last is free to switch once more only from inside its
             # negative set (a line that left a convex set does not come back to it).
@@ -324,8 +334,11 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     # falling since the last step): past the secant's root of g.  Leaving it (g
                     # rising): as far as the balls would cover were g to keep rising at most 0.8
                     # times as fast.  A regime surface's steps are checked at the end as below.
+                    # A primitive with a proven step along the ray (along: fibre and ray-cell lumens,
+                    # ray bands) takes that step, and the crossing below, instead.
                     if (relax_ok and (not skip_free or regime(P[a, 0])) and g_a > 0.0 and P[a, 6] < other
-                            and prev_ok and same_key(P, a, prev_key) and prev_g != g_a):
+                            and prev_ok and same_key(P, a, prev_key) and prev_g != g_a
+                            and not (along and (P[a, 0] == P_LUMEN or P[a, 0] == P_RAY_LUMEN or P[a, 0] == P_BAND))):
                         c_a = P[a, 6]
                         if prev_g > g_a:
                             root = OVERSHOOT * g_a * (s - prev_s) / (prev_g - g_a)
@@ -340,6 +353,13 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                             step = min(2.0 * c_a / (1.0 - rise) if rise < 0.9 else 20.0 * c_a, 20.0 * c_a, other)
                             relax = True
                             bound = B_AWAY
+                    if (along and relax_ok and not skip_free and g_a > 0.0 and (P[a, 0] == P_LUMEN or P[a, 0] == P_RAY_LUMEN)
+                            and P[a, 6] < P[a, C_CROSS] <= other):
+                        # Across a fibre or ray-cell lumen's root, to where the ray is surely inside it
+                        # (surface_ray.lumen_step), checked at the end as a secant step is.
+                        step = P[a, C_CROSS]
+                        relax = True
+                        bound = B_CROSS
                     prev_ok = g_a > 0.0
                     if prev_ok:
                         for q in range(5):

@@ -7,6 +7,7 @@ from numba.extending import overload
 
 from ..microstructure.surface import evaluate_at
 from ..microstructure.surface_gradient import gradient_at
+from ..microstructure.surface_ray import along_clearances
 from ._lattice_rows import CONTEXT_LEN, lattice_normal, lattice_rows
 
 
@@ -42,3 +43,17 @@ def _surface_normal(base, lq, ctx, P, key, cache, nrm):
     if _is_lattice(ctx):
         return lambda base, lq, ctx, P, key, cache, nrm: (lattice_normal(base[0], base[1], ctx, key, nrm), 0)
     return lambda base, lq, ctx, P, key, cache, nrm: (gradient_at(base[0], base[1], base[2], ctx, key, cache, nrm), 1)
+
+
+def ray_clearances(R, T, L, d, ctx, P, n, F, skip):
+    """Raise the clearances of the rows P[:n] at (R, T, L) (``skip``: the primitive crossed last) to
+    proven steps along ``d`` where the medium has them: the wood's fibre lumens
+    (:func:`~pipeline.microstructure.surface_ray.along_clearances`); a lattice's balls stay."""
+    raise NotImplementedError("ray_clearances runs inside the march's Numba kernel only")
+
+
+@overload(ray_clearances, inline="always")
+def _ray_clearances(R, T, L, d, ctx, P, n, F, skip):
+    if _is_lattice(ctx):
+        return lambda R, T, L, d, ctx, P, n, F, skip: None
+    return lambda R, T, L, d, ctx, P, n, F, skip: along_clearances(R, T, L, d, ctx, P, n, F, skip)

@@ -189,7 +189,7 @@ class LatticeSlab:
         log = np.zeros((n, log_events, 12) if log_events else (0, 0, 12))
         march(pos, np.ascontiguousarray(directions, np.float64), ids, float(self.thickness_um), float(n_wall),
               float(n_poly), int(max_events), bool(fresnel), np.uint64(seed),
-              lattice_context(lat.geo, lat.kind, lat.seed), self.hit, self.tol, 1.0, *out.values(), log,
+              lattice_context(lat.geo, lat.kind, lat.seed), self.hit, self.tol, 1.0, False, *out.values(), log,
               np.zeros(1), np.zeros(n, np.uint8), np.zeros((n, 5)), np.empty((n, 3)), new_work())
         if log_events:
             out["log"] = log

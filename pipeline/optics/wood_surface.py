@@ -28,6 +28,9 @@ from .interface import SIDE
 # Internal steps [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are
 # (crossings land on a fixed lattice).
 STEP_SCALE = 1.0  # fraction of the clearance stepped (1: the whole proven clearance)
+# Steps proven along the ray for fibre lumens (pipeline/microstructure/surface_ray.py) instead of
+# their balls alone.  Off until the next `exact` version and its retrace (docs/performance.md).
+ALONG = False
 NAMES = ("position", "direction", "status", "events", "path", "evaluations", "passes", "medium")
 FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickness (the base margin)
 AHEAD_MAX = 8.0  # a ray that leaves a region goes on in one reaching 2, 4, then at most 8 base margins ahead
@@ -48,7 +51,7 @@ class WoodSurface:
     unbounded along R and L, as a surface medium (method ``exact``)."""
 
     def __init__(self, params: WoodParams, *, thickness_um: float, seed: int = 1, threads: int = 1,
-                 hit: float = HIT, tol: float = TOL, step_scale: float = STEP_SCALE,
+                 hit: float = HIT, tol: float = TOL, step_scale: float = STEP_SCALE, along: bool | None = None,
                  margin_um: float | None = None, r_bounds_um: tuple | None = None):
         self.params = params
         # A wood bounded along R (a window of a section): a ray that ends outside, or whose next region
@@ -59,6 +62,7 @@ class WoodSurface:
         self.thickness_um = float(thickness_um)
         self.seed = int(seed)
         self.hit, self.tol, self.step_scale = float(hit), float(tol), float(step_scale)
+        self.along = ALONG if along is None else bool(along)
         self.token = ("wood-surfaces", json.dumps(params.to_dict(), sort_keys=True), self.seed, self.thickness_um)
         # The base margin of regions [µm]; it changes how many are built, never a ray's numbers.
         self.margin_um = FIRST_MARGIN_UM + 0.05 * self.thickness_um if margin_um is None else float(margin_um)
@@ -149,7 +153,7 @@ class WoodSurface:
                     _MEMOS.popitem(last=False)
                 memo = free.pop() if free else (new_cache(), new_work())
             march(start[sel], heading[sel], ids[sel], self.thickness_um, *optics, ctx,
-                  self.hit, self.tol, self.step_scale, *(a[lo:hi] for a in res[:8]),
+                  self.hit, self.tol, self.step_scale, self.along, *(a[lo:hi] for a in res[:8]),
                   res[10][lo:hi] if log_events else res[10], memo[0], resume[sel],
                   res[8][lo:hi], res[9][lo:hi], memo[1])
             with _SHARED:
