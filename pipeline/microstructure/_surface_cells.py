@@ -313,8 +313,9 @@ def _ellipses(seed, M, L, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, w
 
 
 @njit(**NOREF)
-def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
-    """Balsa: the generator's Voronoi test on the nine candidate centres, and their faces."""
+def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache, sq_slope):
+    """Balsa: the generator's Voronoi test on the nine candidate centres, and their faces; the reach
+    row holds the squeeze's slope ``sq_slope`` at the point, as the fibre cells' does."""
     c = M[PITCH]
     inv_c = 1.0 / c
     u = pR * inv_c
@@ -387,7 +388,7 @@ def _polygon(seed, M, L, pR, sT, VL, ns, k_in, rt, P, np_, cache):
         g2 = (LO[bi, bj, 1] - L) - plate
         np_ = _row(P, np_, P_PLATE, bi + n_lo, bj + m_lo, 0, 0, g1, abs(g1))
         np_ = _row(P, np_, P_PLATE, bi + n_lo, bj + m_lo, 1, 0, g2, abs(g2))
-    np_ = _row(P, np_, P_REACH, 2, 0, 0, 0, 0.5 * c, 0.5 * c / (k_in + 4.0 * rn + rw))
+    np_ = _row_x(P, np_, P_REACH, 2, 0, 0, 0, 0.5 * c, 0.5 * c / (k_in + 4.0 * rn + rw), sq_slope, pR, sT, 0.0)
     return ph, np_
 
 

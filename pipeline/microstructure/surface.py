@@ -206,7 +206,7 @@ def evaluate(R, T, L, lq, seed, M, ply, patch, gi0, gj0, lam_tab, vessels, nv, v
         if ph >= 0:
             return np.uint8(ph), np_
     if M[SHAPE] == 1.0:
-        return _polygon(seed, M, Ls, pR, sT, VL, ns, k_in, rt, P, np_, cache)
+        return _polygon(seed, M, Ls, pR, sT, VL, ns, k_in, rt, P, np_, cache, sq_slope)
     return _ellipses(seed, M, Ls, pR, sT, n_fl, w_fl, VL, ns, k_in, rt, P, np_, cache, want, sq_slope)
 
 

@@ -43,10 +43,13 @@ def ray_frame(R, T, L, d, ctx, P, n, F):
     the reach rows' clearances.  False where the point is outside the grid."""
     (M, rt, plies, seeds, spans, patches, pshape, origins, lips, vessels, nvs, boxes, th, first, bsh, bptr,
      blist, curv) = ctx
-    reach = -1
+    reach = -1  # the fibre cells' reach row
+    squeeze = 1.0  # inside a ray band there is none
     for i in range(n):
-        if P[i, 0] == P_REACH and P[i, 1] == 1.0:
-            reach = i
+        if P[i, 0] == P_REACH and (P[i, 1] == 1.0 or P[i, 1] == 2.0):
+            squeeze = P[i, C_SQUEEZE]
+            if P[i, 1] == 1.0:
+                reach = i
     q = _ply_of(T, spans, th, first, plies.shape[0])
     cs, sn = plies[q, 0], plies[q, 1]
     Rp = cs * R + sn * L + plies[q, 2]
@@ -78,7 +81,7 @@ def ray_frame(R, T, L, d, ctx, P, n, F):
     F[F_T1Y] = (1.0 - fy) * G / uT if uT > 0.0 else (fy * G / -uT if uT < 0.0 else 1e300)
     F[F_VR] = vR
     F[F_VPT] = vpT
-    F[F_VT] = vpT * (P[reach, C_SQUEEZE] if reach >= 0 else 1.0)
+    F[F_VT] = vpT * squeeze
     F[F_AX] = abs(uR)
     F[F_AY] = abs(uT)
     F[F_UL] = abs(uL)
@@ -257,13 +260,20 @@ def along_clearances(R, T, L, d, ctx, P, n, F, skip):
             S2 = (sw - pull_remainder(F, S)) / wT if wT > 0.0 else 1e300
             ray_cap = max(min(S, S2), 0.0)
             break
+    # Balsa's rows are the faces of the nearest centre's cell: from its polymer the first wall met
+    # is one of them, but from inside a wall the ray may cross into a neighbour's polymer and on to
+    # that cell's walls, which no row lists.  Faces get proven steps only from the polymer.
+    in_cell = True
+    for i in range(n):
+        if P[i, 0] == P_FACE and P[i, 5] <= 0.0:
+            in_cell = False
     for i in range(n):
         kind = P[i, 0]
         if kind == P_BAND or (kind == P_REACH and P[i, 1] == 0.0):  # a band, or the bands' reach
             st = plane_step(F, abs(P[i, 5]), abs(F[F_VPT]), F[F_LB])
             if st > P[i, 6]:
                 P[i, 6] = st
-        elif kind == P_FACE and F[F_CAP] > 0.0:
+        elif kind == P_FACE and F[F_CAP] > 0.0 and in_cell:
             # A balsa face: a line in the pulled-back plane (its normal C_DR, C_DT) moving with L.
             w = abs(F[F_VR] * P[i, C_DR] + F[F_VT] * P[i, C_DT]) + P[i, C_AR] * F[F_UL]
             g = abs(P[i, 5])
@@ -273,8 +283,9 @@ def along_clearances(R, T, L, d, ctx, P, n, F, skip):
                 P[i, 6] = st
         elif (kind == P_PLATE or kind == P_TIP_END) and P[i, 5] > 0.0:
             # An end plate, or where a tip wall begins, approached: a plane of L, fixed; L moves with
-            # the ray.  (Past it the fibre's next cell applies, and its g jumps.)
-            st = min(P[i, 5] / F[F_UL] if F[F_UL] > 0.0 else 1e300, STEP_CELLS * F[F_G])
+            # the ray (short of it by 1e-9 of the way, for rounding).  (Past it the fibre's next cell
+            # applies, and its g jumps.)
+            st = min(P[i, 5] / F[F_UL] * (1.0 - 1e-9) if F[F_UL] > 0.0 else 1e300, STEP_CELLS * F[F_G])
             if st > P[i, 6]:
                 P[i, 6] = st
         elif kind == P_LUMEN or kind == P_RAY_LUMEN:
