@@ -1,4 +1,5 @@
-"""The wood's fibre lumens along a ray: a proven step to each lumen's first root
+"""The wood's primitives along a ray: proven steps to the first roots of its lumens (fibre and
+ray-cell), ray bands, balsa's faces and end plates, and how far its reach rows hold
 (docs/methods.md#proven-steps-along-the-ray).
 
 A point evaluation bounds each primitive by a ball: its margin over how fast anything can move,
