@@ -160,12 +160,12 @@ def render(doc: dict, scans: list | None = None) -> str:
         if g:
             o, n = g["balls"], g["along"]
             md += ["", "Steps proven along the ray (part `along_1mm`, the same scene, the two marches interleaved in "
-                   "one process, CPU; not yet `exact`'s default: it needs the next version and its retrace; "
+                   "one process, CPU; `exact` 5 steps along the ray, `exact` 4 by the balls alone; "
                    "docs/performance.md, \"Proven steps along the ray, measured\"):", "",
                    "| march | µs an interface | evaluations an interface | steps an interface |", "|---|---|---|---|",
                    f"| balls alone (`exact` 4) | {o['us_per_interface']:.2f} | {o['evaluations_per_interface']:.2f} | "
                    f"{o['steps_per_interface']:.2f} |",
-                   f"| proven along the ray | {n['us_per_interface']:.2f} | {n['evaluations_per_interface']:.2f} | "
+                   f"| proven along the ray (`exact` 5) | {n['us_per_interface']:.2f} | {n['evaluations_per_interface']:.2f} | "
                    f"{n['steps_per_interface']:.2f} |", "",
                    f"Time ratio {g['time_ratio']:.2f}; of {g['rays']} rays, {g['rays_moved']['over_1e-9_rad']} exit "
                    f"directions part by more than 1e-9 rad, {g['rays_moved']['over_1e-6_rad']} by more than 1e-6 rad, "

@@ -28,8 +28,11 @@ GENERATOR = STAGES["micro"]
 #   exact 4: the normal is the switching primitive's analytic gradient (it was six central
 #            differences); a crossing's primitive is sought wherever the step as taken was within the
 #            others' clearance.  Rays move at rounding (docs/performance.md).
+#   exact 5: the wood's steps are proven along the ray (pipeline/microstructure/surface_ray.py;
+#            they were balls alone), and a crossing's root is sought from the lumen's own root on
+#            the ray's frame, then by secants nudged past their roots.  Rays move at rounding.
 #   iso 1: a grey-level scan's trilinear iso-surface, crossings as roots of its cubics.
-TRACERS = {"paper": "7", "fast": "7", "accurate": "7", "exact": "4", "iso": "1"}
+TRACERS = {"paper": "7", "fast": "7", "accurate": "7", "exact": "5", "iso": "1"}
 
 # Cached camera images (2: entries verified, key and digest).
 CAMERA = "2"

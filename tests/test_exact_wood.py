@@ -372,7 +372,7 @@ def test_the_evaluations_by_purpose_and_the_steps_by_bound_add_up_to_the_rays_ow
     # Each step's length was set by one bound and its end evaluated once; a step's start is evaluated
     # again only after a surface the march passed without a phase change.
     bounds = dict(medium.steps)
-    top = sum(bounds[k] for k in ("own", "others", "secant", "away", "regime", "inside", "probe"))
+    top = sum(bounds[k] for k in ("own", "others", "secant", "away", "regime", "inside", "probe", "cross"))
     assert top <= counts["step"] <= top + res.extras["passes"].sum()
     assert bounds["own_free"] + bounds["own_past_others"] + bounds["own_again"] <= bounds["own"]
     assert 0 < bounds["others_reach"] <= bounds["others"] and bounds["again"] < top

@@ -59,7 +59,7 @@ def test_no_primitive_switches_within_its_proven_step(case):
                     _directions(rng, k)):
         _, n = evaluate_at(x[0], x[1], x[2], 0.0, ctx, P, cache, np.zeros(5))
         balls = P[:n, 6].copy()
-        along_clearances(x[0], x[1], x[2], d, ctx, P, n, F, np.zeros(5))
+        along_clearances(x[0], x[1], x[2], d, ctx, P, n, F, -1)
         rows = P[:n].copy()
         # The march's step (docs/methods.md#the-exact-method): A the row of least clearance, the
         # others' least clearance beside it; outside A no phase change within A's clearance, inside

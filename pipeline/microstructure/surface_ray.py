@@ -107,17 +107,24 @@ def ray_frame(R, T, L, d, ctx, P, n, F):
         _fibre_reach(M[PITCH], P, reach, F)
     for i in range(n):
         if P[i, 0] == P_REACH and P[i, 1] == 2.0:
-            # Balsa's reach row: no centre but the nine listed within half a cell of the point; the
-            # centres move at most 2·R_NODE more than a lumen with L.
-            speed = math.sqrt(vR * vR + F[F_VT] * F[F_VT]) + 2.0 * F[F_RN]
-            if speed > 0.0:
-                half = 0.5 * M[PITCH]
-                S = min(half / speed, STEP_CELLS * G)
-                S = min(S, (half - fibre_remainder(F, S)) / speed)
-                if S > P[i, 6]:
-                    P[i, 6] = S
-            F[F_CAP] = min(P[i, 6], STEP_CELLS * G)
+            _balsa_reach(M[PITCH], P, i, F)
     return True
+
+
+@njit(inline="always", **NOREF)
+def _balsa_reach(c, P, i, F):
+    """Balsa's reach row i: no centre but the nine listed lies within half a cell of the point, and
+    the centres move at most 2·R_NODE more than a lumen with L, so half a cell over the pulled-back
+    speed, less e, is a proven step for every face not listed."""
+    cap = STEP_CELLS * F[F_G]
+    speed = math.sqrt(F[F_VR] * F[F_VR] + F[F_VT] * F[F_VT]) + 2.0 * F[F_RN]
+    if speed > 0.0:
+        half = 0.5 * c
+        S = min(half / speed, cap)
+        S = min(S, (half - fibre_remainder(F, S)) / speed)
+        if S > P[i, 6]:
+            P[i, 6] = S
+    F[F_CAP] = min(P[i, 6], cap)
 
 
 @njit(inline="always", **NOREF)
@@ -241,7 +248,8 @@ def along_clearances(R, T, L, d, ctx, P, n, F, skip):
     ray bands and the reach rows; and note where the ray is surely inside each lumen (C_CROSS).
 
     Lazily: a lumen's step is worked out only while its ball is among the two least clearances
-    of the rows other than ``skip`` (the march steps by those two), so a step costs a few lumens'
+    of the rows other than row ``skip`` (the primitive crossed last, -1 for none; the march steps
+    by those two), so a step costs a few lumens'
     quadratics, not every listed lumen's; a lumen left with its ball has C_CROSS -1."""
     if not ray_frame(R, T, L, d, ctx, P, n, F):
         for i in range(n):
@@ -298,8 +306,7 @@ def along_clearances(R, T, L, d, ctx, P, n, F, skip):
         a = -1
         b = -1
         for i in range(n):
-            if skip[0] > 0.0 and P[i, 0] == skip[0] and P[i, 1] == skip[1] and P[i, 2] == skip[2] \
-                    and P[i, 3] == skip[3] and P[i, 4] == skip[4]:
+            if i == skip:
                 continue
             if a < 0 or P[i, 6] < P[a, 6]:
                 b = a
@@ -316,3 +323,27 @@ def along_clearances(R, T, L, d, ctx, P, n, F, skip):
                                          F[F_CAP] if fibre else ray_cap, fibre)
         if st > P[i, 6]:
             P[i, 6] = st
+
+
+@njit(inline="always", **NOREF)
+def lumen_root(F, P, i):
+    """Where the line p₀ + s·v of the frame F meets the ellipse of lumen row i (fibre or ray cell;
+    C_CROSS >= 0: its step worked out, or the ray inside it) unperturbed, entering it from outside
+    or leaving it from inside: a guess at its root, within the remainder of it; -1 for none."""
+    kind = P[i, 0]
+    if not ((kind == P_LUMEN or kind == P_RAY_LUMEN) and P[i, C_CROSS] >= 0.0 and P[i, C_AR] > 0.0
+            and P[i, C_AT] > 0.0):
+        return -1.0
+    fibre = kind == P_LUMEN
+    w1 = F[F_VR] if fibre else F[F_VPT]
+    w2 = F[F_VT] if fibre else F[F_VL]
+    i1 = 1.0 / (P[i, C_AR] * P[i, C_AR])
+    i2 = 1.0 / (P[i, C_AT] * P[i, C_AT])
+    alpha = w1 * w1 * i1 + w2 * w2 * i2
+    beta = P[i, C_DR] * w1 * i1 + P[i, C_DT] * w2 * i2
+    c = P[i, C_DR] * P[i, C_DR] * i1 + P[i, C_DT] * P[i, C_DT] * i2 - 1.0
+    if P[i, 5] > 0.0:
+        hit = _first_hit(alpha, beta, c + 1.0, 1.0)
+        return hit if hit < 1e300 else -1.0
+    disc = beta * beta - alpha * c  # inside (c < 0): the line leaves the ellipse at the larger root
+    return (-beta + math.sqrt(disc)) / alpha if alpha > 0.0 and disc >= 0.0 else -1.0

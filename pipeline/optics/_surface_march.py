@@ -26,7 +26,7 @@ from .._intrinsics import borrowed, carve
 from ..microstructure.surface import C_CROSS, MAX_PRIMS, N_COLS, P_BAND, P_LUMEN, P_RAY_LUMEN, P_REACH
 from ..microstructure.surface_ray import N_FRAME
 from ._surface_march_rows import copy_rows, far_unproven, find_row, nearest, regime, same_key, switched
-from ._surface_points import ray_clearances, surface_at, surface_normal
+from ._surface_points import ray_clearances, root_guess, surface_at, surface_normal
 from .interface import NEEDS_CHUNK, REFLECTED, TRANSMITTED, TRAPPED, interface_event
 
 NEEDS_REGION = NEEDS_CHUNK  # the ray left the precomputed region: the caller widens it and traces again
@@ -291,7 +291,8 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             have = False
             if along:
                 # The rows' balls, raised to proven steps along d where the medium has them.
-                ray_clearances(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], d, ctx, P, n, frame, skip)
+                ray_clearances(X[0] + s * d[0], X[1] + s * d[1], X[2] + s * d[2], d, ctx, P, n, frame,
+                               find_row(P, n, skip) if skip[0] > 0.0 else -1)
             a, other, o = nearest(P, n, skip, key)
             # The primitive crossed last is free to switch once more only from inside its
             # negative set (a line that left a convex set does not come back to it).
@@ -453,6 +454,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             hi = s_end
             single = False
             j = -1
+            j0 = -1
             g_lo = np.nan
             # The step as taken, not s_end - s: that may round one ulp above a step that was the
             # others' clearance, and the phase would be bisected over the whole step.
@@ -469,6 +471,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                             break
                         single = True
                         j = i1
+                        j0 = i0
                         g_lo = P[i0, 5]
                         if cand == 1:
                             for q in range(5):
@@ -476,6 +479,13 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             g_hi = Pb[j, 5] if j >= 0 else np.nan
             t_lo = g_lo  # the true g at lo and hi (Illinois halves its copies)
             t_hi = g_hi
+            # With steps along the ray, A's root as its frame sees it is the first point tried, and
+            # then the secant's root through the last two points tried, nudged 0.45·tol past it, so
+            # that two points close the bracket to tol once the secant is that good (at most 4).
+            guess = s + root_guess(frame, P, j0, ctx) if along and single else -1.0
+            x_prev = lo
+            g_prev = g_lo
+            nudges = 4 if along else 0
             if single:
                 # Regula falsi (Illinois) on the sign of g: the root of the primitive itself.
                 side = 0
@@ -483,6 +493,9 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                     mid = lo + (hi - lo) * g_lo / (g_lo - g_hi)
                     if not (lo < mid < hi) or hi - lo < 4.0 * tol:
                         mid = 0.5 * (lo + hi)
+                    if lo < guess < hi:
+                        mid = guess
+                    guess = -1.0
                     if mid <= lo or mid >= hi:
                         break
                     phm, nm = surface_at(X[0] + mid * d[0], X[1] + mid * d[1], X[2] + mid * d[2], lq, ctx, P, cache,
@@ -496,6 +509,12 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
                         hi = s_end
                         break
                     gm = P[i, 5]
+                    if nudges > 0 and gm != g_prev:
+                        nudges -= 1
+                        x_sec = mid - gm * (mid - x_prev) / (gm - g_prev)
+                        guess = x_sec + (0.05 * tol if x_sec > mid else -0.05 * tol)
+                    x_prev = mid
+                    g_prev = gm
                     if (gm < 0.0) == (g_lo < 0.0):
                         lo = mid
                         g_lo = gm

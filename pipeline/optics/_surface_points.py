@@ -7,7 +7,7 @@ from numba.extending import overload
 
 from ..microstructure.surface import evaluate_at
 from ..microstructure.surface_gradient import gradient_at
-from ..microstructure.surface_ray import along_clearances
+from ..microstructure.surface_ray import along_clearances, lumen_root
 from ._lattice_rows import CONTEXT_LEN, lattice_normal, lattice_rows
 
 
@@ -46,7 +46,7 @@ def _surface_normal(base, lq, ctx, P, key, cache, nrm):
 
 
 def ray_clearances(R, T, L, d, ctx, P, n, F, skip):
-    """Raise the clearances of the rows P[:n] at (R, T, L) (``skip``: the primitive crossed last) to
+    """Raise the clearances of the rows P[:n] at (R, T, L) (``skip``: the row crossed last, or -1) to
     proven steps along ``d`` where the medium has them: the wood's fibre lumens
     (:func:`~pipeline.microstructure.surface_ray.along_clearances`); a lattice's balls stay."""
     raise NotImplementedError("ray_clearances runs inside the march's Numba kernel only")
@@ -57,3 +57,16 @@ def _ray_clearances(R, T, L, d, ctx, P, n, F, skip):
     if _is_lattice(ctx):
         return lambda R, T, L, d, ctx, P, n, F, skip: None
     return lambda R, T, L, d, ctx, P, n, F, skip: along_clearances(R, T, L, d, ctx, P, n, F, skip)
+
+
+def root_guess(F, P, i, ctx):
+    """A guess at the distance along the ray to row i's root from the frame F (wood lumens,
+    :func:`~pipeline.microstructure.surface_ray.lumen_root`); -1 for none."""
+    raise NotImplementedError("root_guess runs inside the march's Numba kernel only")
+
+
+@overload(root_guess, inline="always")
+def _root_guess(F, P, i, ctx):
+    if _is_lattice(ctx):
+        return lambda F, P, i, ctx: -1.0
+    return lambda F, P, i, ctx: lumen_root(F, P, i)

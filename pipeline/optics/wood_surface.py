@@ -28,9 +28,9 @@ from .interface import SIDE
 # Internal steps [µm] (docs/methods.md#the-exact-method); halving them leaves the rays as they are
 # (crossings land on a fixed lattice).
 STEP_SCALE = 1.0  # fraction of the clearance stepped (1: the whole proven clearance)
-# Steps proven along the ray for fibre lumens (pipeline/microstructure/surface_ray.py) instead of
-# their balls alone.  Off until the next `exact` version and its retrace (docs/performance.md).
-ALONG = False
+# Steps proven along the ray (pipeline/microstructure/surface_ray.py), not the rows' balls alone
+# (`exact` 5; False is `exact` 4's march, kept for comparison: docs/performance.md).
+ALONG = True
 NAMES = ("position", "direction", "status", "events", "path", "evaluations", "passes", "medium")
 FIRST_MARGIN_UM = 40.0  # region around the entry points, plus 5 % of the thickness (the base margin)
 AHEAD_MAX = 8.0  # a ray that leaves a region goes on in one reaching 2, 4, then at most 8 base margins ahead
