@@ -93,7 +93,8 @@ def render(doc: dict, scans: list | None = None) -> str:
                   else f" on {woods} woods" if woods else "")
             md.append(f"At paper scale (`make table1 SCALE=paper YES=1`, `make bench-table1-paper`) with "
                       f"`{tp.get('method', 'accurate')}`{on}, cold: {tp['cold_s'] / 60:.1f} min{cpu}{warm}{how}.")
-            for key, label in (("five_woods", "On 5 woods a study, before Table 1 traced woods to its target"),
+            for key, label in (("exact_version_4", "With `exact` version 4 (steps by the balls alone)"),
+                               ("five_woods", "On 5 woods a study, before Table 1 traced woods to its target"),
                                ("exact_version_3_with_reference_counts",
                                 "Before the evaluations ran without reference counts (the same rays)"),
                                ("exact_version_3_before_borrowed_arrays",
