@@ -480,7 +480,7 @@ def march(pos, dirs, ray_ids, thickness, n_wall, n_poly, max_events, fresnel, fs
             t_lo = g_lo  # the true g at lo and hi (Illinois halves its copies)
             t_hi = g_hi
             # With steps along the ray, A's root as its frame sees it is the first point tried, and
-            # then the secant's root through the last two points tried, nudged 0.45·tol past it, so
+            # then the secant's root through the last two points tried, nudged 0.05·tol past it, so
             # that two points close the bracket to tol once the secant is that good (at most 4).
             guess = s + root_guess(frame, P, j0, ctx) if along and single else -1.0
             x_prev = lo
