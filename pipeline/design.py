@@ -257,8 +257,9 @@ def plot_maps(maps: dict, path: Path, regime=None) -> Path:
                 out, ok = regime_marks(ds, regime)
                 for pts, marker in ((out, "x"), (ok, "o")):
                     if pts:
-                        ax.scatter(*zip(*pts), marker=marker, s=28, c="c", facecolors="none" if marker == "o" else None,
-                                   linewidths=1.2, label="rays do not hold (waves)" if marker == "x" else "rays hold")
+                        colour = {"edgecolors": "c", "facecolors": "none"} if marker == "o" else {"c": "c"}
+                        ax.scatter(*zip(*pts), marker=marker, s=28, linewidths=1.2, **colour,
+                                   label="rays do not hold (waves)" if marker == "x" else "rays hold")
                 if i == 0 and j == 0 and (out or ok):
                     ax.legend(fontsize=6, loc="upper left")
             ax.set_xscale("symlog", linthresh=1e-3)

@@ -608,7 +608,7 @@ def test_a_report_section_is_built_alone_from_the_data_it_reads():
 # Committed datasets still traced by an earlier version of their method, awaiting their retrace
 # (docs/performance.md#retracing): a version bump that leaves one out, or a retrace that forgets to
 # strike it off, fails below.
-AWAITING_RETRACE = {"paper/wave/regime.zarr", "tradeoff.zarr"}
+AWAITING_RETRACE: set[str] = set()
 
 
 def test_every_committed_dataset_is_traced_by_its_methods_current_version_or_awaits_its_retrace():
