@@ -409,7 +409,9 @@ def test_a_ray_along_t_of_an_extruded_section_steps_over_no_wall_beside_a_vessel
     """The wave regime's birch 1 mm section (seed 1, its first beam position, ray 1, ΔRI 0.002):
     the segment that starts in vessel (90, 52)'s lumen crosses a wall between s = 34.35 and
     37.6 µm that the march does not stop at, so the generator's phase changes twice inside it.
-    Both marches do it, and 1 of 200 rays of that beam; strict, so it fails once fixed."""
+    A regime step from inside the lumen, cut short of the vessel outline's root, reads the far
+    side's phase there and so no crossing (docs/performance.md#retracing).  Both marches do
+    it, and 1 of 200 rays of that beam; strict, so it fails once fixed."""
     from pipeline.wave.sections import extruded
 
     surf = WoodSurface(extruded(build_params("birch")), thickness_um=1000.0, seed=1, r_bounds_um=(0.0, 1386.0))
