@@ -65,14 +65,15 @@ def line(label: str, done: int, total: int, share: float | None = None, left: fl
 
 
 def _pending(dask_scheduler, keys) -> tuple[list, list]:
-    """Which of ``keys`` the scheduler holds, and which of those are finished (in memory,
-    erred or forgotten)."""
+    """Which of ``keys`` the scheduler holds, and which of those are finished: in memory, erred,
+    forgotten, or released after running (its result used by its dependents and dropped while
+    the rest of the graph runs; a task not yet run has no size, ``nbytes`` -1)."""
     held, finished = [], []
     for k in keys:
         ts = dask_scheduler.tasks.get(k)
         if ts is not None:
             held.append(k)
-            if ts.state in ("memory", "erred", "forgotten"):
+            if ts.state in ("memory", "erred", "forgotten") or (ts.state == "released" and ts.nbytes >= 0):
                 finished.append(k)
     return held, finished
 

@@ -159,6 +159,31 @@ def test_following_a_cluster_prints_lines_while_tasks_run_and_all_of_them_at_the
 _RELEASE = threading.Event()  # module-level: the tasks below are pickled by reference
 
 
+def test_the_share_of_work_done_counts_tasks_whose_results_were_used_and_released(capsys):
+    """A shard whose result its summary has used is "released" on the scheduler, not "forgotten",
+    while the rest of the graph runs: it is done (Table 1's progress once said 13 % of the work
+    until the last second).  Here three weighed tasks feed three others and a fourth is held."""
+    from distributed import Client
+
+    def slow(x):
+        time.sleep(0.2)
+        return x
+
+    _RELEASE.clear()
+    with Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as client:
+        firsts = [dask.delayed(slow)(i, dask_key_name=f"first-{i}") for i in range(3)]
+        jobs = [dask.delayed(slow)(f, dask_key_name=f"then-{i}") for i, f in enumerate(firsts)]
+        jobs.append(dask.delayed(_held)(dask_key_name="held-last"))
+        futures = client.compute(jobs)
+        threading.Timer(2.5, _RELEASE.set).start()
+        follow(client, futures, graph_keys(jobs), "trace", "lines", every_s=0.2,
+               weights={"first-0": 1.0, "first-1": 1.0, "first-2": 1.0, "held-last": 1.0})
+    err = capsys.readouterr().err.splitlines()
+    assert any("75 % of the estimated work" in x for x in err), err
+
+
+
+
 def _held():
     _RELEASE.wait(30.0)
 
