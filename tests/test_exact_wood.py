@@ -403,8 +403,9 @@ def test_memos_kept_between_traces_change_no_ray():
         assert np.array_equal(a.direction, b.direction) and np.array_equal(a.events, b.events)
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known miss, `exact` 4 and 5 alike (docs/performance.md#retracing): a "
-                   "3.25 µm wall between a vessel's lumen and a fibre's, on a ray along T of an extruded section")
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="known miss, `exact` 4 and 5 alike (docs/performance.md#retracing): a 3.25 µm wall "
+                   "between a vessel's lumen and a fibre's, on a ray along T of an extruded section")
 def test_a_ray_along_t_of_an_extruded_section_steps_over_no_wall_beside_a_vessel():
     """The wave regime's birch 1 mm section (seed 1, its first beam position, ray 1, ΔRI 0.002):
     the segment that starts in vessel (90, 52)'s lumen crosses a wall between s = 34.35 and

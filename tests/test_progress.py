@@ -159,6 +159,14 @@ def test_following_a_cluster_prints_lines_while_tasks_run_and_all_of_them_at_the
 _RELEASE = threading.Event()  # module-level: the tasks below are pickled by reference
 
 
+def _held():
+    _RELEASE.wait(30.0)
+
+
+def _broken():
+    raise ValueError("a broken scene")
+
+
 def test_the_share_of_work_done_counts_tasks_whose_results_were_used_and_released(capsys):
     """A shard whose result its summary has used is "released" on the scheduler, not "forgotten",
     while the rest of the graph runs: it is done (Table 1's progress once said 13 % of the work
@@ -180,16 +188,6 @@ def test_the_share_of_work_done_counts_tasks_whose_results_were_used_and_release
                weights={"first-0": 1.0, "first-1": 1.0, "first-2": 1.0, "held-last": 1.0})
     err = capsys.readouterr().err.splitlines()
     assert any("75 % of the estimated work" in x for x in err), err
-
-
-
-
-def _held():
-    _RELEASE.wait(30.0)
-
-
-def _broken():
-    raise ValueError("a broken scene")
 
 
 def test_following_a_cluster_returns_when_a_task_fails_without_waiting_for_the_others(capsys):
